@@ -1,0 +1,40 @@
+"""Rebuilding a trained model from a nerf-train checkpoint alone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+
+def run_dir_of(ckpt_path: str | Path) -> Path:
+    """The run folder of a checkpoint: <run> for <run>/checkpoints/x.ckpt, else the checkpoint's folder."""
+    folder = Path(ckpt_path).expanduser().resolve().parent
+    return folder.parent if folder.name == "checkpoints" else folder
+
+
+def load_model(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> tuple[L.LightningModule, dict[str, Any]]:
+    """Load a nerf-train checkpoint: the model in eval mode and the run's resolved config.
+
+    Raises FileNotFoundError for a missing file and ValueError for a file that is not a nerf-train checkpoint.
+    """
+    path = Path(ckpt_path).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as error:
+        raise ValueError(f"could not read checkpoint {path}: {error}") from error
+    info = checkpoint.get("nerf_lightning") if isinstance(checkpoint, dict) else None
+    if not info or "config" not in info:
+        raise ValueError(f"{path} is not a nerf-train checkpoint: it has no 'nerf_lightning' entry with the run's config")
+    config = info["config"]
+    model = instantiate(OmegaConf.create(config["model"]))
+    model.on_load_checkpoint(checkpoint)
+    model.load_state_dict(checkpoint["state_dict"])
+    model.eval()
+    return model, {"kind": info["kind"], "config": config, "global_step": checkpoint.get("global_step")}

@@ -1,0 +1,66 @@
+"""Random training batches, streamed in segments that end where validation is due.
+
+Training is counted in optimiser steps, one random batch a step. Lightning validates an endless
+iterable dataset when its iterator runs out, so each pass ("epoch") of the stream lasts until the next
+validation step; validation then happens at exactly the steps asked for (for example 10, 100, 200, 400,
+1000), not at a fixed interval. Each batch's random numbers are seeded from (seed, rank, step), so a run
+resumed from a checkpoint draws the batches the uninterrupted run would have drawn.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import torch
+from torch.utils.data import IterableDataset
+
+
+def steps_to_next_validation(step: int, val_steps: Sequence[int], val_every: int | None, max_steps: int) -> int:
+    """Number of training steps from ``step`` (steps done so far) to the next validation.
+
+    Validation is due after any step in ``val_steps``, after every multiple of ``val_every``, and after
+    the last step ``max_steps`` (max_steps < 0 means no limit).
+    """
+    candidates = [s for s in val_steps if s > step]
+    if val_every:
+        candidates.append((step // val_every + 1) * val_every)
+    if max_steps is not None and max_steps > 0:
+        candidates.append(max_steps)
+    if not candidates:
+        raise ValueError("training has no end and no validation steps: set trainer.max_steps, data.val_steps or data.val_every")
+    return max(1, min(candidates) - step)
+
+
+class SegmentedBatches(IterableDataset):
+    """An iterable dataset whose every pass yields the batches up to the next validation step.
+
+    Args:
+        draw_batch: draws one batch with the given generator.
+        steps_done: returns the number of optimiser steps taken so far (the trainer's global step).
+        segment_length: maps the steps done to the length of the next segment.
+        seed: base seed; the batch of step s is drawn with a generator seeded from (seed, rank, s).
+        rank: the process rank, so data-parallel processes draw different batches.
+    """
+
+    def __init__(
+        self,
+        draw_batch: Callable[[torch.Generator], dict[str, Any]],
+        steps_done: Callable[[], int],
+        segment_length: Callable[[int], int],
+        seed: int,
+        rank: Callable[[], int] = lambda: 0,
+    ) -> None:
+        super().__init__()
+        self.draw_batch = draw_batch
+        self.steps_done = steps_done
+        self.segment_length = segment_length
+        self.seed = seed
+        self.rank = rank
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        start, rank = self.steps_done(), self.rank()
+        generator = torch.Generator()
+        for step in range(start, start + self.segment_length(start)):
+            generator.manual_seed(hash((self.seed, rank, step)) & 0x7FFF_FFFF_FFFF_FFFF)
+            yield self.draw_batch(generator)

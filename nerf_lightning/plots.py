@@ -1,0 +1,38 @@
+"""Matplotlib figures written as PNG: PSNR curves of one run or of a whole sweep."""
+
+from __future__ import annotations
+
+import io as _io
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from nerf_lightning.io import write_atomic  # noqa: E402
+
+
+def plot_psnr_curves(
+    curves: Mapping[str, tuple[Sequence[float], Sequence[float]]],
+    path: str | Path,
+    title: str = "PSNR",
+    xlabel: str = "step",
+) -> Path:
+    """One line per curve: ``{label: (steps, psnr_db)}``; curves of a single point are drawn as markers."""
+    figure, axes = plt.subplots(figsize=(7, 4.2), dpi=110)
+    for label, (steps, psnr) in curves.items():
+        style = {"marker": "o"} if len(steps) < 30 else {}
+        axes.plot(list(steps), list(psnr), label=label, linewidth=1.4, **style)
+    axes.set_xlabel(xlabel)
+    axes.set_ylabel("PSNR (dB)")
+    axes.set_title(title)
+    axes.grid(True, alpha=0.3)
+    if curves:
+        axes.legend(fontsize=8, loc="lower right")
+    figure.tight_layout()
+    buffer = _io.BytesIO()
+    figure.savefig(buffer, format="png")
+    plt.close(figure)
+    return write_atomic(path, buffer.getvalue())

@@ -1,0 +1,55 @@
+"""nerf-train: compose a config with Hydra, train with Lightning, write metrics.json into the run folder."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import hydra
+import lightning as L
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from nerf_lightning.callbacks import RunConfigInCheckpoint
+from nerf_lightning.io import write_json
+
+# Batches are drawn in the main process on purpose: workers would only copy the precomputed tensors.
+warnings.filterwarnings("ignore", ".*does not have many workers.*")
+warnings.filterwarnings("ignore", ".*isinstance\(treespec, LeafSpec\).*")
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Train the model ``cfg.model`` on ``cfg.data``; returns the final metrics also written to metrics.json."""
+    output_dir = Path(cfg.paths.output_dir)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+
+    datamodule = instantiate(cfg.data)
+    model = instantiate(cfg.model)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
+    callbacks.append(RunConfigInCheckpoint(resolved))
+    loggers = [instantiate(logger) for logger in (cfg.get("logger") or {}).values()]
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+
+    started = time.perf_counter()
+    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    wall_seconds = time.perf_counter() - started
+
+    metrics: dict[str, Any] = {key: float(value) for key, value in trainer.callback_metrics.items()}
+    metrics.update(step=int(trainer.global_step), wall_seconds=round(wall_seconds, 3))
+    if trainer.is_global_zero:
+        write_json(output_dir / "metrics.json", metrics)
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
+def main(cfg: DictConfig) -> float | None:
+    metrics = train(cfg)
+    # a sweeper optimises the returned value
+    return metrics.get("val/psnr")
+
+
+if __name__ == "__main__":
+    main()

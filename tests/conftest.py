@@ -35,3 +35,16 @@ def run_cli(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
     if result.returncode != 0:
         pytest.fail(f"{module} {' '.join(args)} exited {result.returncode}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
     return result
+
+
+@pytest.fixture(scope="session")
+def scene_cache(tmp_path_factory):
+    """A cache folder for the procedural scene shared by the whole test session (not ~/.cache)."""
+    return tmp_path_factory.mktemp("scene_cache")
+
+
+@pytest.fixture(scope="session")
+def procedural_scene(scene_cache):
+    from nerf_lightning.data.formats import load_procedural
+
+    return load_procedural(cache_dir=scene_cache)

@@ -61,3 +61,33 @@ def test_multirun_sweep_and_its_report(tmp_path):
         assert f"{psnr:.2f}" in row
     assert "model.field.num_frequencies=2" in rows[0] and "model.field.num_frequencies=6" in rows[1]
     assert (sweep / "psnr.png").stat().st_size > 1000
+
+
+def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import torch
+
+    run = tmp_path / "run"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "nerf_lightning.train", *TINY, "trainer.max_steps=1000000", "data.val_steps=[5]",
+         "callbacks.last_checkpoint.every_n_train_steps=1000000", f"hydra.run.dir={run}"],
+        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not (run / "psnr_history.json").exists():  # written after the validation at step 5
+            assert process.poll() is None and time.monotonic() < deadline, "training did not reach its first validation"
+            time.sleep(0.2)
+        time.sleep(1.0)  # then let it take more steps
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert process.returncode != 0
+    saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    assert saved["global_step"] > 5, "Ctrl-C lost the steps after the last validation"
+    assert torch.load(run / "checkpoints" / "best.ckpt", weights_only=False)["global_step"] == 5

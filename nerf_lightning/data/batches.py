@@ -12,8 +12,9 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
+import lightning as L
 import torch
-from torch.utils.data import IterableDataset
+from torch.utils.data import DataLoader, IterableDataset
 
 
 def steps_to_next_validation(step: int, val_steps: Sequence[int], val_every: int | None, max_steps: int) -> int:
@@ -30,6 +31,11 @@ def steps_to_next_validation(step: int, val_steps: Sequence[int], val_every: int
     if not candidates:
         raise ValueError("training has no end and no validation steps: set trainer.max_steps, data.val_steps or data.val_every")
     return max(1, min(candidates) - step)
+
+
+def batch_seed(seed: int, rank: int, step: int) -> int:
+    """The seed of the random batch of optimiser step ``step`` on process ``rank``."""
+    return hash((seed, rank, step)) & 0x7FFF_FFFF_FFFF_FFFF
 
 
 class SegmentedBatches(IterableDataset):
@@ -62,5 +68,52 @@ class SegmentedBatches(IterableDataset):
         start, rank = self.steps_done(), self.rank()
         generator = torch.Generator()
         for step in range(start, start + self.segment_length(start)):
-            generator.manual_seed(hash((self.seed, rank, step)) & 0x7FFF_FFFF_FFFF_FFFF)
+            generator.manual_seed(batch_seed(self.seed, rank, step))
             yield self.draw_batch(generator)
+
+
+class StepBatchesDataModule(L.LightningDataModule):
+    """A DataModule whose training set is one random batch a step, validated at chosen steps.
+
+    Subclasses load their data in ``setup`` and implement :meth:`draw_batch` and ``val_dataloader``.
+
+    Args:
+        batch_size: samples (pixels, rays) per training step.
+        val_steps: steps after which to validate; the last step (the trainer's ``max_steps``) always validates.
+        val_every: also validate every this many steps (None: only at ``val_steps``).
+        seed: seeds the batches; each process of a data-parallel run draws its own.
+    """
+
+    def __init__(self, batch_size: int, val_steps: Sequence[int] = (), val_every: int | None = None, seed: int = 0) -> None:
+        super().__init__()
+        if batch_size < 1:
+            raise ValueError(f"data.batch_size must be >= 1, got {batch_size}")
+        if val_every is not None and val_every < 1:
+            raise ValueError(f"data.val_every must be >= 1 or null, got {val_every}")
+        self.batch_size = batch_size
+        self.val_steps = sorted(int(step) for step in val_steps)
+        self.val_every = val_every
+        self.seed = seed
+
+    def draw_batch(self, generator: torch.Generator) -> dict[str, Any]:
+        """One training batch, drawn with ``generator``."""
+        raise NotImplementedError
+
+    def _steps_done(self) -> int:
+        return self.trainer.global_step if self.trainer is not None else 0
+
+    def _rank(self) -> int:
+        return self.trainer.global_rank if self.trainer is not None else 0
+
+    def _max_steps(self) -> int:
+        return self.trainer.max_steps if self.trainer is not None else -1
+
+    def segment_length(self, step: int) -> int:
+        """Training steps from ``step`` to the next validation."""
+        if self.trainer is None:  # iterated outside a Trainer (tests, notebooks): one segment up to the next validation
+            return steps_to_next_validation(step, self.val_steps, self.val_every or 1_000_000, -1)
+        return steps_to_next_validation(step, self.val_steps, self.val_every, self._max_steps())
+
+    def train_dataloader(self) -> DataLoader:
+        batches = SegmentedBatches(self.draw_batch, steps_done=self._steps_done, segment_length=self.segment_length, seed=self.seed, rank=self._rank)
+        return DataLoader(batches, batch_size=None, num_workers=0)

@@ -1,6 +1,8 @@
-"""Data: file formats -> images and scenes -> batches of pixels or rays."""
+"""Data: file formats -> Scene -> batches of pixels (image fields) or rays (radiance fields)."""
 
 from nerf_lightning.data.images import default_image, downscale, load_image, pixel_grid
 from nerf_lightning.data.pixels import PixelDataModule
+from nerf_lightning.data.rays import RayDataModule
+from nerf_lightning.data.scene import Scene, Views
 
-__all__ = ["PixelDataModule", "default_image", "downscale", "load_image", "pixel_grid"]
+__all__ = ["PixelDataModule", "RayDataModule", "Scene", "Views", "default_image", "downscale", "load_image", "pixel_grid"]

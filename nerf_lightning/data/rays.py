@@ -1,0 +1,107 @@
+"""Batches of random rays drawn over all pixels of all training views, for fitting a radiance field."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch.utils.data import DataLoader
+
+from nerf_lightning.data.batches import StepBatchesDataModule
+from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.geometry.paths import orbit_path, spiral_path
+from nerf_lightning.geometry.rays import image_rays
+
+
+def view_batch(views: Views, index: int) -> dict[str, Any]:
+    """Every ray of one view, row-major: rays_o, rays_d (H*W, 3), rgb (H*W, 3) and depth (H*W,) where known."""
+    rays_o, rays_d = image_rays(views.K[index : index + 1], views.c2w[index : index + 1], views.height, views.width)
+    batch: dict[str, Any] = {"rays_o": rays_o[0], "rays_d": rays_d[0], "height": views.height, "width": views.width, "index": index}
+    if views.images is not None:
+        batch["rgb"] = views.images[index].reshape(-1, 3)
+    if views.depth is not None:
+        batch["depth"] = views.depth[index].reshape(-1)
+    return batch
+
+
+class RayDataModule(StepBatchesDataModule):
+    """Each training step ``batch_size`` rays drawn uniformly, with replacement, over every pixel of every
+    training view, with their colours; validation on a few whole held-out views; a render path.
+
+    Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units) and ``rgb``
+    (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. The rays of all training pixels are
+    computed once, in :meth:`setup`.
+
+    Args:
+        scene: loads the :class:`Scene` (a Hydra ``_partial_`` of a loader such as ``load_blender``).
+        root: the scene's folder (Blender) or file (npz), handed to ``scene`` as its first argument; None for
+            scenes that need none (the procedural one).
+        batch_size: rays per training step.
+        val_views: how many held-out views to validate on (evenly spaced over the split).
+        val_split: ``val`` or ``test``: which held-out split validation uses (the other when it is absent).
+        render_path: ``test`` (the scene's render or test cameras), ``orbit`` or ``spiral``.
+        render_frames: frames of a generated orbit or spiral.
+        val_steps, val_every, seed: see :class:`StepBatchesDataModule`.
+    """
+
+    def __init__(
+        self,
+        scene: Callable[..., Scene],
+        root: str | None = None,
+        batch_size: int = 10_000,
+        val_views: int = 3,
+        val_split: str = "val",
+        render_path: str = "test",
+        render_frames: int = 60,
+        val_steps: list[int] | tuple[int, ...] = (),
+        val_every: int | None = 500,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(batch_size=batch_size, val_steps=val_steps, val_every=val_every, seed=seed)
+        if render_path not in ("test", "orbit", "spiral"):
+            raise ValueError(f"data.render_path must be test, orbit or spiral, got '{render_path}'")
+        self.load_scene = scene
+        self.root = root
+        self.val_views = val_views
+        self.val_split = val_split
+        self.render_path = render_path
+        self.render_frames = render_frames
+        self.scene: Scene | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.scene is not None:
+            return
+        self.scene = self.load_scene() if self.root is None else self.load_scene(self.root)
+        train = self.scene.train
+        rays_o, rays_d = image_rays(train.K, train.c2w, train.height, train.width)
+        self.rays_o = rays_o.reshape(-1, 3)  # (N*H*W, 3)
+        self.rays_d = rays_d.reshape(-1, 3)
+        self.rgb = train.images.reshape(-1, 3)
+
+    def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        index = torch.randint(0, self.rgb.shape[0], (self.batch_size,), generator=generator)
+        return {"rays_o": self.rays_o[index], "rays_d": self.rays_d[index], "rgb": self.rgb[index]}
+
+    def validation_views(self) -> Views:
+        held_out = self.scene.held_out(self.val_split)
+        return held_out.subset(evenly_spaced(len(held_out), self.val_views))
+
+    def val_dataloader(self) -> DataLoader:
+        views = self.validation_views()
+        return DataLoader([view_batch(views, i) for i in range(len(views))], batch_size=None, num_workers=0)
+
+    def render_views(self, path: str | None = None, n_frames: int | None = None) -> Views:
+        """Cameras of a render path (no images): ``test`` (the scene's render split, else its test split),
+        ``orbit`` or ``spiral`` (``n_frames`` frames around where the training cameras look)."""
+        path = path or self.render_path
+        n_frames = n_frames or self.render_frames
+        train = self.scene.train
+        if path == "test":
+            views = self.scene.splits.get("render") or self.scene.held_out("test")
+            return Views(K=views.K, c2w=views.c2w, height=views.height, width=views.width, names=views.names)
+        make = {"orbit": orbit_path, "spiral": spiral_path}.get(path)
+        if make is None:
+            raise ValueError(f"unknown render path '{path}': expected test, orbit or spiral")
+        c2w = make(train.c2w, n_frames)
+        return Views(K=train.K[:1].expand(n_frames, 3, 3).clone(), c2w=c2w, height=train.height, width=train.width)

@@ -1,0 +1,102 @@
+"""The one type every data format loads into: posed views, split, bounds and background."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+
+@dataclass
+class Views:
+    """Pinhole views of one image size, cameras in the OpenCV convention (see :mod:`nerf_lightning.geometry.cameras`).
+
+    Attributes:
+        K: (N, 3, 3) intrinsics in pixels.
+        c2w: (N, 4, 4) camera-to-world.
+        height, width: image size in pixels.
+        images: (N, H, W, 3) float RGB in [0, 1], composited onto the scene's background; None for cameras
+            only (a render path).
+        depth: (N, H, W) true distance along each pixel's unit ray to the first surface, inf where the ray
+            hits nothing; None where unknown.
+        names: one name per view (its file), for messages and outputs.
+    """
+
+    K: torch.Tensor
+    c2w: torch.Tensor
+    height: int
+    width: int
+    images: torch.Tensor | None = None
+    depth: torch.Tensor | None = None
+    names: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        count = self.c2w.shape[0]
+        if self.K.shape != (count, 3, 3) or self.c2w.shape != (count, 4, 4):
+            raise ValueError(f"Views need K (N, 3, 3) and c2w (N, 4, 4) with one N, got {tuple(self.K.shape)} and {tuple(self.c2w.shape)}")
+        if self.images is not None and self.images.shape != (count, self.height, self.width, 3):
+            raise ValueError(f"Views: images {tuple(self.images.shape)} do not match {count} cameras of {self.height}x{self.width}")
+        if self.depth is not None and self.depth.shape != (count, self.height, self.width):
+            raise ValueError(f"Views: depth {tuple(self.depth.shape)} does not match {count} cameras of {self.height}x{self.width}")
+        if not self.names:
+            self.names = [f"view_{index:03d}" for index in range(count)]
+
+    def __len__(self) -> int:
+        return int(self.c2w.shape[0])
+
+    def subset(self, index: torch.Tensor | list[int]) -> Views:
+        """The views at ``index``, in that order."""
+        index = torch.as_tensor(index, dtype=torch.long)
+        return Views(
+            K=self.K[index],
+            c2w=self.c2w[index],
+            height=self.height,
+            width=self.width,
+            images=None if self.images is None else self.images[index],
+            depth=None if self.depth is None else self.depth[index],
+            names=[self.names[int(i)] for i in index],
+        )
+
+
+@dataclass
+class Scene:
+    """A multi-view scene.
+
+    Attributes:
+        splits: ``train`` (always), ``val`` and ``test`` (held-out images) and optionally ``render`` (cameras
+            of a render path, no images).
+        near, far: the range along unit rays where the scene lies.
+        background: (3,) RGB the images were composited onto, and that rendering blends in.
+        source: where it was loaded from, for messages.
+    """
+
+    splits: dict[str, Views]
+    near: float
+    far: float
+    background: torch.Tensor = field(default_factory=lambda: torch.ones(3))
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if "train" not in self.splits or len(self.splits["train"]) == 0:
+            raise ValueError(f"{self.source}: a scene needs at least one training view")
+        if not 0 <= self.near < self.far:
+            raise ValueError(f"{self.source}: need 0 <= near < far, got near={self.near}, far={self.far}")
+
+    @property
+    def train(self) -> Views:
+        return self.splits["train"]
+
+    def held_out(self, prefer: str = "val") -> Views:
+        """The held-out views: ``prefer`` if the scene has it, else the other of val and test."""
+        other = "test" if prefer == "val" else "val"
+        for name in (prefer, other):
+            if name in self.splits and len(self.splits[name]) and self.splits[name].images is not None:
+                return self.splits[name]
+        raise ValueError(f"{self.source}: no held-out views with images (val or test); hold some out with data.scene.holdout_every")
+
+
+def evenly_spaced(count: int, keep: int) -> list[int]:
+    """``keep`` indices spread evenly over ``range(count)`` (all of them if keep >= count)."""
+    if keep >= count:
+        return list(range(count))
+    return [round(i * (count - 1) / max(keep - 1, 1)) for i in range(keep)]

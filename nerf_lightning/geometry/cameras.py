@@ -1,0 +1,101 @@
+"""Pinhole cameras on kornia.
+
+Conventions, named once: a camera-to-world matrix ``c2w`` (4, 4) maps camera coordinates to world
+coordinates. ``opencv`` cameras look down +z with x right and y down (kornia's and the course's
+convention); ``opengl`` cameras (Blender, NeRF's synthetic data, nerfstudio) look down -z with y up.
+Loaders convert to OpenCV once, with :func:`opengl_to_opencv`; all code after them speaks OpenCV.
+Pixel (u, v) has u to the right and v down, and the centre of pixel (i, j) is at (j + 0.5, i + 0.5).
+"""
+
+from __future__ import annotations
+
+import kornia
+import torch
+from kornia.geometry.camera import PinholeCamera
+from kornia.geometry.camera.perspective import unproject_points
+
+# flips the y and z axes of a camera frame: OpenGL (y up, z back) <-> OpenCV (y down, z forward)
+_FLIP_YZ = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
+
+
+def opengl_to_opencv(c2w: torch.Tensor) -> torch.Tensor:
+    """(..., 4, 4) OpenGL camera-to-world -> (..., 4, 4) OpenCV camera-to-world (its own inverse)."""
+    return c2w @ _FLIP_YZ.to(c2w)
+
+
+def validate_c2w(c2w: torch.Tensor, source: str, tolerance: float = 1e-3) -> torch.Tensor:
+    """Check (N, 4, 4) camera-to-world matrices: finite, last row [0, 0, 0, 1], rotation orthonormal with det +1.
+
+    Raises ValueError naming ``source`` (a file and key) and the first bad camera.
+    """
+    if c2w.ndim != 3 or c2w.shape[-2:] != (4, 4):
+        raise ValueError(f"{source}: expected camera-to-world matrices of shape (N, 4, 4), got {tuple(c2w.shape)}")
+    c2w = c2w.to(torch.float64)
+    bad = ~torch.isfinite(c2w).flatten(1).all(1)
+    if bad.any():
+        raise ValueError(f"{source}: camera {int(bad.nonzero()[0])} has non-finite entries (NaN or inf)")
+    last_row = (c2w[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)).abs().amax(1)
+    if (last_row > tolerance).any():
+        raise ValueError(f"{source}: camera {int((last_row > tolerance).nonzero()[0])} has last row {c2w[int((last_row > tolerance).nonzero()[0]), 3].tolist()}, expected [0, 0, 0, 1]")
+    rotation = c2w[:, :3, :3]
+    error = (rotation.transpose(1, 2) @ rotation - torch.eye(3, dtype=torch.float64)).abs().flatten(1).amax(1)
+    error = torch.maximum(error, (torch.linalg.det(rotation) - 1.0).abs())
+    if (error > tolerance).any():
+        index = int((error > tolerance).nonzero()[0])
+        raise ValueError(f"{source}: camera {index} is not rigid: its rotation is not orthonormal with determinant +1 (error {float(error[index]):.3g})")
+    return c2w.to(torch.float32)
+
+
+def pinhole_camera(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int) -> PinholeCamera:
+    """kornia cameras from (B, 3, 3) intrinsics and (B, 4, 4) OpenCV camera-to-world matrices."""
+    batch = K.shape[0]
+    intrinsics = torch.eye(4, dtype=K.dtype, device=K.device).repeat(batch, 1, 1)
+    intrinsics[:, :3, :3] = K
+    extrinsics = torch.linalg.inv(c2w)  # kornia's extrinsics map world to camera
+    size = torch.full((batch,), 1, dtype=K.dtype, device=K.device)
+    return PinholeCamera(intrinsics, extrinsics, size * height, size * width)
+
+
+def camera_to_world(c2w: torch.Tensor, x_c: torch.Tensor) -> torch.Tensor:
+    """Points from camera to world coordinates: (B, 4, 4) and (B, N, 3) -> (B, N, 3)."""
+    return kornia.geometry.transform_points(c2w, x_c)
+
+
+def pixel_to_camera(K: torch.Tensor, uv: torch.Tensor, s: torch.Tensor | float) -> torch.Tensor:
+    """Pixels to camera coordinates at depth ``s`` (the camera-frame z): x_c = s K^-1 [u, v, 1].
+
+    K (B, 3, 3), uv (B, N, 2), s a number or (B, N, 1) -> (B, N, 3).
+    """
+    depth = torch.as_tensor(s, dtype=uv.dtype, device=uv.device).expand(*uv.shape[:-1], 1)
+    return unproject_points(uv, depth, K[:, None])
+
+
+def pixel_to_ray(K: torch.Tensor, c2w: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays through pixels: K (B, 3, 3), c2w (B, 4, 4) OpenCV, uv (B, N, 2) -> rays_o, rays_d (B, N, 3).
+
+    The origin is the camera centre; the direction has unit length and points from the centre through
+    the pixel's point at depth 1.
+    """
+    rays_o = c2w[:, None, :3, 3].expand(*uv.shape[:-1], 3)
+    x_w = camera_to_world(c2w, pixel_to_camera(K, uv, 1.0))
+    rays_d = torch.nn.functional.normalize(x_w - rays_o, dim=-1)
+    return rays_o, rays_d
+
+
+def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up: torch.Tensor | None = None) -> torch.Tensor:
+    """OpenCV camera-to-world matrices of cameras at ``eye`` (N, 3) looking at ``target`` (3,) (default origin).
+
+    ``up`` (default +z) sets the image's up direction (-y of the camera); returns (N, 4, 4).
+    """
+    target = torch.zeros(3, dtype=eye.dtype) if target is None else target
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=eye.dtype) if up is None else up
+    forward = torch.nn.functional.normalize(target - eye, dim=-1)  # camera +z
+    right = torch.linalg.cross(forward, up.expand_as(forward))
+    # looking straight along `up`: any right vector will do
+    degenerate = right.norm(dim=-1) < 1e-6
+    right[degenerate] = torch.linalg.cross(forward[degenerate], torch.tensor([0.0, 1.0, 0.0], dtype=eye.dtype).expand_as(forward[degenerate]))
+    right = torch.nn.functional.normalize(right, dim=-1)  # camera +x
+    down = torch.linalg.cross(forward, right)  # camera +y
+    c2w = torch.eye(4, dtype=eye.dtype).repeat(eye.shape[0], 1, 1)
+    c2w[:, :3, 0], c2w[:, :3, 1], c2w[:, :3, 2], c2w[:, :3, 3] = right, down, forward, eye
+    return c2w

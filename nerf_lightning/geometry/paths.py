@@ -1,0 +1,59 @@
+"""Camera paths for novel-view videos: an orbit or a spiral around where the training cameras look."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from nerf_lightning.geometry.cameras import look_at
+
+
+def look_at_point(c2w: torch.Tensor) -> torch.Tensor:
+    """The point nearest to every camera's optical axis (+z of (N, 4, 4) OpenCV c2w), by least squares: (3,).
+
+    Solves sum_i (I - a_i a_i^T) p = sum_i (I - a_i a_i^T) o_i for camera centres o_i and unit axes a_i.
+    """
+    origins = c2w[:, :3, 3].double()
+    axes = torch.nn.functional.normalize(c2w[:, :3, 2].double(), dim=-1)
+    projectors = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]
+    return torch.linalg.lstsq(projectors.sum(0), (projectors @ origins[:, :, None]).sum(0)).solution[:, 0].to(c2w.dtype)
+
+
+def _orbit_frame(c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float, float]:
+    """Centre, up and two horizontal axes of the training cameras, their mean distance and mean elevation."""
+    centre = look_at_point(c2w)
+    up = torch.nn.functional.normalize(-c2w[:, :3, 1].mean(0), dim=0)  # OpenCV: -y is the image's up
+    offsets = c2w[:, :3, 3] - centre
+    radius = float(offsets.norm(dim=-1).mean())
+    elevation = float(torch.asin((torch.nn.functional.normalize(offsets, dim=-1) @ up).clamp(-1, 1)).mean())
+    helper = torch.tensor([1.0, 0.0, 0.0]) if abs(float(up[0])) < 0.9 else torch.tensor([0.0, 1.0, 0.0])
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(up, helper.to(up)), dim=0)
+    e2 = torch.linalg.cross(up, e1)
+    return centre, up, e1, e2, radius, elevation
+
+
+def orbit_path(c2w: torch.Tensor, n_frames: int = 60, elevation_degrees: float | None = None) -> torch.Tensor:
+    """(n_frames, 4, 4) OpenCV cameras circling the training cameras' look-at point once, at their mean
+    distance and (unless given) mean elevation, looking at that point with the training cameras' up."""
+    centre, up, e1, e2, radius, elevation = _orbit_frame(c2w)
+    if elevation_degrees is not None:
+        elevation = math.radians(elevation_degrees)
+    theta = torch.linspace(0.0, 2.0 * math.pi, n_frames + 1)[:-1]
+    phi = torch.full_like(theta, elevation)
+    return _cameras_on_sphere(centre, up, e1, e2, radius, theta, phi)
+
+
+def spiral_path(c2w: torch.Tensor, n_frames: int = 60, turns: int = 2, swing_degrees: float = 15.0) -> torch.Tensor:
+    """(n_frames, 4, 4) cameras on ``turns`` circles around the look-at point whose elevation swings
+    ``swing_degrees`` above and below the training cameras' mean elevation."""
+    centre, up, e1, e2, radius, elevation = _orbit_frame(c2w)
+    u = torch.linspace(0.0, 1.0, n_frames + 1)[:-1]
+    theta = 2.0 * math.pi * turns * u
+    phi = elevation + math.radians(swing_degrees) * torch.sin(2.0 * math.pi * u)
+    return _cameras_on_sphere(centre, up, e1, e2, radius, theta, phi)
+
+
+def _cameras_on_sphere(centre, up, e1, e2, radius, theta, phi) -> torch.Tensor:
+    directions = torch.cos(phi)[:, None] * (torch.cos(theta)[:, None] * e1 + torch.sin(theta)[:, None] * e2) + torch.sin(phi)[:, None] * up
+    return look_at(centre + radius * directions, target=centre, up=up)

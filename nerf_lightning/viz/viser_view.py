@@ -1,0 +1,62 @@
+"""An interactive 3D view in the browser with viser (``pip install -e ".[viz]"``): training cameras as frustums
+showing their images, random rays between near and far, their samples, and one camera's own rays."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from nerf_lightning.data.scene import Scene
+from nerf_lightning.geometry.paths import look_at_point
+from nerf_lightning.io import to_uint8
+from nerf_lightning.viz.rays_sample import RaySample
+
+
+def _require_viser():
+    try:
+        import viser
+        import viser.transforms
+    except ImportError as error:
+        raise ImportError('the interactive view needs viser, an optional extra: pip install -e ".[viz]"') from error
+    return viser
+
+
+def _segments(scene: Scene, sample: RaySample) -> np.ndarray:
+    near = sample.rays_o + scene.near * sample.rays_d
+    far = sample.rays_o + scene.far * sample.rays_d
+    return torch.stack([near, far], dim=1).numpy().astype(np.float32)  # (R, 2, 3)
+
+
+def serve_scene(scene: Scene, all_rays: RaySample, one_camera: RaySample, camera: int, host: str = "127.0.0.1", port: int = 8080):
+    """Start a viser server showing the scene; returns the server (``server.stop()`` ends it)."""
+    viser = _require_viser()
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    train = scene.train
+    centre = look_at_point(train.c2w)
+    radius = float((train.c2w[:, :3, 3] - centre).norm(dim=-1).mean())
+    up = torch.nn.functional.normalize(-train.c2w[:, :3, 1].mean(0), dim=0)  # the images' up (OpenCV -y)
+    server.scene.set_up_direction(up.double().numpy())
+    # start outside the ring of cameras, looking at where they look
+    outside = torch.nn.functional.normalize(train.c2w[0, :3, 3] - centre, dim=0) + 0.6 * up
+    server.initial_camera.look_at = centre.double().numpy()
+    server.initial_camera.position = (centre + 2.2 * radius * torch.nn.functional.normalize(outside, dim=0)).double().numpy()
+    fov = 2.0 * math.atan(0.5 * train.height / float(train.K[0, 1, 1]))  # vertical, radians
+    for index in range(len(train)):
+        c2w = train.c2w[index].double().numpy()
+        server.scene.add_camera_frustum(
+            f"/cameras/{index:03d}",
+            fov=fov,
+            aspect=train.width / train.height,
+            scale=0.1 * radius,
+            image=None if train.images is None else to_uint8(train.images[index]),
+            wxyz=viser.transforms.SO3.from_matrix(c2w[:3, :3]).wxyz,
+            position=c2w[:3, 3],
+            color=(40, 90, 200) if index != camera else (30, 160, 60),
+        )
+    server.scene.add_line_segments("/rays/random", points=_segments(scene, all_rays), colors=(220, 50, 40), thickness=0.004 * radius)
+    server.scene.add_point_cloud("/samples/random", points=all_rays.points.reshape(-1, 3).numpy(), colors=(20, 20, 20), point_size=0.01 * radius)
+    server.scene.add_line_segments(f"/rays/camera_{camera}", points=_segments(scene, one_camera), colors=(30, 160, 60), thickness=0.004 * radius)
+    server.scene.add_point_cloud(f"/samples/camera_{camera}", points=one_camera.points.reshape(-1, 3).numpy(), colors=(30, 120, 40), point_size=0.01 * radius)
+    return server

@@ -1,0 +1,50 @@
+"""nerf-viz-cameras: cameras, random rays and their samples of a scene, as a PNG or in the browser (viser)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import hydra
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from nerf_lightning.viz.plot import plot_cameras_and_rays
+from nerf_lightning.viz.rays_sample import draw_rays
+
+log = logging.getLogger(__name__)
+
+
+def visualise(cfg: DictConfig) -> Path | object:
+    datamodule = instantiate(cfg.data)
+    datamodule.setup()
+    scene = datamodule.scene
+    all_rays = draw_rays(scene, cfg.viz.n_rays, cfg.viz.n_samples, seed=cfg.seed)
+    one_camera = draw_rays(scene, cfg.viz.n_rays_one_camera, cfg.viz.n_samples, camera=cfg.viz.camera, seed=cfg.seed + 1)
+    if cfg.viz.backend == "png":
+        path = plot_cameras_and_rays(scene, all_rays, one_camera, cfg.viz.camera, Path(cfg.output_dir) / "cameras.png")
+        log.info("wrote %s", path)
+        return path
+    if cfg.viz.backend == "viser":
+        from nerf_lightning.viz.viser_view import serve_scene
+
+        server = serve_scene(scene, all_rays, one_camera, cfg.viz.camera, host=cfg.viz.host, port=cfg.viz.port)
+        log.info("viser is serving the scene at http://%s:%d (Ctrl-C to stop)", cfg.viz.host, cfg.viz.port)
+        return server
+    raise ValueError(f"viz.backend must be png or viser, got '{cfg.viz.backend}'")
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="viz")
+def main(cfg: DictConfig) -> None:
+    result = visualise(cfg)
+    if cfg.viz.backend == "viser":
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            result.stop()
+
+
+if __name__ == "__main__":
+    main()

@@ -42,6 +42,8 @@ class Snapshots(L.Callback):
         if trainer.sanity_checking or not trainer.is_global_zero or not isinstance(outputs, dict):
             return
         step = trainer.global_step
+        # Lightning logs this validation's scalars at step - 1 (the index of the batch just finished): match it
+        tb_step = max(step - 1, 0)
         for name, image in outputs.get("images", {}).items():
             if name == "target":
                 if batch_idx in self._targets_logged:
@@ -52,7 +54,7 @@ class Snapshots(L.Callback):
             for logger in trainer.loggers:
                 if isinstance(logger, TensorBoardLogger):
                     tb_image = image if image.ndim == 3 else image[..., None].expand(-1, -1, 3)
-                    logger.experiment.add_image(f"val/{name}_{batch_idx:02d}", tb_image.clamp(0, 1).cpu(), step, dataformats="HWC")
+                    logger.experiment.add_image(f"val/{name}_{batch_idx:02d}", tb_image.clamp(0, 1).cpu(), tb_step, dataformats="HWC")
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if trainer.sanity_checking or "val/psnr" not in trainer.callback_metrics:

@@ -54,3 +54,18 @@ def test_resuming_from_last_ckpt_continues_the_same_run(make_config, tmp_path):
     assert resumed["val/psnr"] == straight["val/psnr"] and resumed["train/loss"] == straight["train/loss"]
     history = json.loads((tmp_path / "resumed" / "psnr_history.json").read_text())
     assert history["val_step"] == [10, 20, 40] and len(history["train_step"]) == 40
+
+
+def test_tensorboard_has_curves_and_snapshots_on_one_step_axis(make_config, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = tmp_path / "run"
+    train(make_config("experiment=image", "data.downscale=4", "data.batch_size=256", "trainer.max_steps=20",
+                      "data.val_steps=[10]", "trainer.enable_progress_bar=false", run_dir=run))
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"images": 0, "scalars": 0})
+    events.Reload()
+    assert len(events.Scalars("train/psnr")) == 20 and len(events.Scalars("train/loss")) == 20
+    val_steps = [event.step for event in events.Scalars("val/psnr")]
+    assert len(val_steps) == 2
+    assert [event.step for event in events.Images("val/rgb_00")] == val_steps
+    assert len(events.Images("val/target_00")) == 1

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
+import imageio.v3 as iio
 import lightning as L
+import torch
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.plots import plot_psnr_curves
+from nerf_lightning.video import write_gif
 
 
 class Snapshots(L.Callback):
@@ -21,13 +25,38 @@ class Snapshots(L.Callback):
     (the ``target`` images once only). The history of ``train/psnr`` (every step) and ``val/psnr`` is
     written to ``psnr_history.json`` after each validation and plotted to ``psnr.png`` when training ends.
     The history is part of the callback's checkpoint state, so a resumed run keeps its whole curve.
+    When training ends, the snapshots of the first view become ``montage.gif``: the fit over training.
     """
 
     def __init__(self, output_dir: str, dirname: str = "snapshots") -> None:
         self.output_dir = Path(output_dir)
         self.dirname = dirname
-        self.history: dict[str, list[float]] = {"train_step": [], "train_psnr": [], "val_step": [], "val_psnr": []}
+        self.history: dict[str, list[float]] = {
+            "train_step": [], "train_psnr": [], "train_seconds": [], "val_step": [], "val_psnr": [], "val_seconds": []
+        }
         self._targets_logged: set[int] = set()
+        self._clock_start: float | None = None
+        self._validation_started: float | None = None
+        self._seconds_before = 0.0  # training seconds of earlier sessions of a resumed run
+
+    def _training_seconds(self) -> float:
+        """Seconds spent training so far: since the fit started, less validations (one in progress too)."""
+        if self._clock_start is None:
+            return self._seconds_before
+        now = time.perf_counter()
+        in_validation = now - self._validation_started if self._validation_started is not None else 0.0
+        return self._seconds_before + now - self._clock_start - in_validation
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._clock_start = time.perf_counter()
+
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._validation_started = time.perf_counter()
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self._validation_started is not None and self._clock_start is not None:
+            self._clock_start += time.perf_counter() - self._validation_started  # validation is not training time
+        self._validation_started = None
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
         loss = outputs["loss"] if isinstance(outputs, dict) else outputs
@@ -35,6 +64,7 @@ class Snapshots(L.Callback):
             return
         self.history["train_step"].append(trainer.global_step)
         self.history["train_psnr"].append(float(mse_to_psnr(loss.detach().float())))
+        self.history["train_seconds"].append(round(self._training_seconds(), 4))
 
     def on_validation_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0
@@ -44,7 +74,15 @@ class Snapshots(L.Callback):
         step = trainer.global_step
         # Lightning logs this validation's scalars at step - 1 (the index of the batch just finished): match it
         tb_step = max(step - 1, 0)
-        for name, image in outputs.get("images", {}).items():
+        images = dict(outputs.get("images", {}))
+        if "target" in images and "rgb" in images:
+            # truth | render | depth, one picture to compare at a glance
+            panels = [images["target"], images["rgb"]] + ([images["depth"][..., None].expand(-1, -1, 3)] if "depth" in images else [])
+            side_by_side = torch.cat([panel.detach().float().cpu() for panel in panels], dim=1)
+            for logger in trainer.loggers:
+                if isinstance(logger, TensorBoardLogger):
+                    logger.experiment.add_image(f"val/compare_{batch_idx:02d}", side_by_side.clamp(0, 1), tb_step, dataformats="HWC")
+        for name, image in images.items():
             if name == "target":
                 if batch_idx in self._targets_logged:
                     continue
@@ -61,6 +99,7 @@ class Snapshots(L.Callback):
             return
         self.history["val_step"].append(trainer.global_step)
         self.history["val_psnr"].append(float(trainer.callback_metrics["val/psnr"]))
+        self.history["val_seconds"].append(round(self._training_seconds(), 4))
         if trainer.is_global_zero:
             write_json(self.output_dir / "psnr_history.json", self.history)
 
@@ -76,12 +115,16 @@ class Snapshots(L.Callback):
             self.output_dir / "psnr.png",
             title=f"PSNR over training: {self.output_dir.name}",
         )
+        snapshots = sorted((self.output_dir / self.dirname).glob("rgb_00_step*.png"))
+        if snapshots:
+            write_gif(self.output_dir / "montage.gif", [iio.imread(path) for path in snapshots], fps=2.0)
 
     def state_dict(self) -> dict[str, Any]:
-        return {"history": self.history}
+        return {"history": self.history, "training_seconds": self._training_seconds()}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        self.history = {key: list(values) for key, values in state_dict["history"].items()}
+        self.history.update({key: list(values) for key, values in state_dict["history"].items()})
+        self._seconds_before = float(state_dict.get("training_seconds", 0.0))
 
 
 class RunConfigInCheckpoint(L.Callback):

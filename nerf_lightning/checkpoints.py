@@ -17,10 +17,17 @@ def run_dir_of(ckpt_path: str | Path) -> Path:
     return folder.parent if folder.name == "checkpoints" else folder
 
 
-def load_model(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> tuple[L.LightningModule, dict[str, Any]]:
+# `${run_dir_of:${ckpt_path}}` in render.yaml, eval.yaml and export.yaml: outputs go beside the run
+OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path)), replace=True)
+
+
+def load_model(
+    ckpt_path: str | Path, map_location: str | torch.device = "cpu", kind: str | None = None, command: str = "this command"
+) -> tuple[L.LightningModule, dict[str, Any]]:
     """Load a nerf-train checkpoint: the model in eval mode and the run's resolved config.
 
-    Raises FileNotFoundError for a missing file and ValueError for a file that is not a nerf-train checkpoint.
+    Raises FileNotFoundError for a missing file and ValueError for a file that is not a nerf-train checkpoint
+    or, when ``kind`` is given, holds another kind of model than ``command`` works with.
     """
     path = Path(ckpt_path).expanduser()
     if not path.is_file():
@@ -32,9 +39,18 @@ def load_model(ckpt_path: str | Path, map_location: str | torch.device = "cpu") 
     info = checkpoint.get("nerf_lightning") if isinstance(checkpoint, dict) else None
     if not info or "config" not in info:
         raise ValueError(f"{path} is not a nerf-train checkpoint: it has no 'nerf_lightning' entry with the run's config")
+    if kind is not None and info.get("kind") != kind:
+        raise ValueError(f"{path} holds a model of kind '{info.get('kind')}'; {command} works with {kind} checkpoints")
     config = info["config"]
     model = instantiate(OmegaConf.create(config["model"]))
     model.on_load_checkpoint(checkpoint)
     model.load_state_dict(checkpoint["state_dict"])
     model.eval()
     return model, {"kind": info["kind"], "config": config, "global_step": checkpoint.get("global_step")}
+
+
+def load_run_data(config: dict[str, Any]):
+    """The run's DataModule rebuilt from its resolved config and set up (its scene loaded)."""
+    datamodule = instantiate(OmegaConf.create(config["data"]))
+    datamodule.setup()
+    return datamodule

@@ -1,5 +1,6 @@
 """LightningModules: a field, its loss and metrics, and its optimiser."""
 
 from nerf_lightning.models.image_field import ImageFieldModule
+from nerf_lightning.models.radiance_field import RadianceFieldModule
 
-__all__ = ["ImageFieldModule"]
+__all__ = ["ImageFieldModule", "RadianceFieldModule"]

@@ -6,16 +6,16 @@ from collections.abc import Callable
 from typing import Any
 
 import kornia
-import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from nerf_lightning.data.images import pixel_grid
 from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.models.base import FieldModule
 
 
-class ImageFieldModule(L.LightningModule):
+class ImageFieldModule(FieldModule):
     """Trains an image field (positions (N, 2) -> colours (N, 3)) with an MSE loss on random pixels.
 
     Logs ``train/loss`` and ``train/psnr`` every step and ``val/psnr`` of the whole image at each validation.
@@ -23,8 +23,7 @@ class ImageFieldModule(L.LightningModule):
 
     Args:
         field: the image field, for example :class:`~nerf_lightning.fields.ImageField`.
-        optimizer: builds the optimiser from the parameters (a Hydra ``_partial_``).
-        scheduler: builds a learning-rate scheduler, stepped every optimiser step, from the optimiser; or None.
+        optimizer, scheduler: see :class:`~nerf_lightning.models.base.FieldModule`.
         chunk_size: pixels evaluated at once when rendering, so memory stays bounded at any resolution.
     """
 
@@ -37,10 +36,8 @@ class ImageFieldModule(L.LightningModule):
         scheduler: Callable[..., Any] | None = None,
         chunk_size: int = 65_536,
     ) -> None:
-        super().__init__()
+        super().__init__(optimizer, scheduler)
         self.field = field
-        self.make_optimizer = optimizer
-        self.make_scheduler = scheduler
         self.chunk_size = chunk_size
         self.image_size: tuple[int, int] | None = None  # (H, W) of the fitted image, kept in checkpoints
 
@@ -81,12 +78,6 @@ class ImageFieldModule(L.LightningModule):
         psnr = kornia.metrics.psnr(rgb, target, max_val=1.0)
         self.log("val/psnr", psnr, prog_bar=True, batch_size=1)
         return {"images": {"rgb": rgb, "target": target}}
-
-    def configure_optimizers(self) -> Any:
-        optimizer = self.make_optimizer(params=self.parameters())
-        if self.make_scheduler is None:
-            return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.make_scheduler(optimizer=optimizer), "interval": "step"}}
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["image_size"] = self.image_size

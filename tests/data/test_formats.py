@@ -49,7 +49,6 @@ def test_procedural_highlight_depends_on_the_view(procedural_scene):
     from nerf_lightning.data.formats.procedural import shade
 
     hit = {"normal": torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=torch.float64), "albedo": torch.full((2, 3), 0.5, dtype=torch.float64)}
-    light = torch.nn.functional.normalize(torch.tensor([0.4, -0.3, 0.85], dtype=torch.float64), dim=0)
     mirror = torch.nn.functional.normalize(torch.tensor([-0.4, 0.3, 0.85], dtype=torch.float64), dim=0)
     views = torch.stack([-mirror, torch.tensor([0.0, 0.8, -0.6], dtype=torch.float64)])  # into the highlight, and away
     colours = shade(hit, views)

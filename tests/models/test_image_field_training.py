@@ -39,6 +39,9 @@ def test_a_run_writes_its_folder(make_config, tmp_path):
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
     history = json.loads((run / "psnr_history.json").read_text())
     assert history["val_step"] == [10, 20, 30] and len(history["train_psnr"]) == 30
+    seconds = history["train_seconds"]
+    assert len(seconds) == 30 and all(b >= a for a, b in zip(seconds, seconds[1:])) and 0 < seconds[-1] < saved["wall_seconds"]
+    assert history["val_seconds"][-1] <= seconds[-1] + 1e-3  # validation time is not counted as training time
     assert (run / "psnr.png").stat().st_size > 1000
 
 
@@ -69,3 +72,4 @@ def test_tensorboard_has_curves_and_snapshots_on_one_step_axis(make_config, tmp_
     assert len(val_steps) == 2
     assert [event.step for event in events.Images("val/rgb_00")] == val_steps
     assert len(events.Images("val/target_00")) == 1
+    assert [event.step for event in events.Images("val/compare_00")] == val_steps

@@ -10,7 +10,6 @@ Deterministic: the same arguments give the same files.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import shutil

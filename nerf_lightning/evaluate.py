@@ -1,0 +1,59 @@
+"""nerf-eval: render every held-out view of a radiance field's scene; eval.json with PSNR, SSIM and depth error."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import hydra
+import kornia
+import torch
+from omegaconf import DictConfig
+
+from nerf_lightning.checkpoints import load_model, load_run_data
+from nerf_lightning.data.scene import evenly_spaced
+from nerf_lightning.io import write_json, write_png
+from nerf_lightning.render import render_views
+
+log = logging.getLogger(__name__)
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    model, info = load_model(cfg.ckpt_path, kind="radiance_field", command="nerf-eval")
+    scene = load_run_data(info["config"]).scene
+    views = scene.held_out(cfg.split)
+    if cfg.max_views:
+        views = views.subset(evenly_spaced(len(views), cfg.max_views))
+    output_dir = Path(cfg.output_dir)
+    rendered = render_views(model, views, desc=f"evaluating {len(views)} views")
+    per_view = []
+    for index, frame in enumerate(rendered):
+        target = views.images[index]
+        row = {
+            "view": views.names[index],
+            "psnr": float(kornia.metrics.psnr(frame["rgb"], target, max_val=1.0)),
+            "ssim": float(kornia.metrics.ssim(frame["rgb"].permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11).mean()),
+        }
+        if views.depth is not None:
+            surface = torch.isfinite(views.depth[index])
+            row["depth_error"] = float((frame["depth"][surface] - views.depth[index][surface]).abs().mean())
+        per_view.append(row)
+        stem = Path(views.names[index]).stem
+        write_png(output_dir / "images" / f"{stem}_rgb.png", frame["rgb"])
+        write_png(output_dir / "images" / f"{stem}_depth.png", model.depth_image(frame["depth"]) * frame["accumulation"])
+    keys = [key for key in ("psnr", "ssim", "depth_error") if key in per_view[0]]
+    mean = {key: sum(row[key] for row in per_view) / len(per_view) for key in keys}
+    result = {"checkpoint": str(Path(cfg.ckpt_path).resolve()), "step": info["global_step"], "split": cfg.split,
+              "views": len(per_view), "mean": mean, "per_view": per_view}
+    write_json(output_dir / "eval.json", result)
+    log.info("%d views: %s -> %s", len(per_view), ", ".join(f"{k} {v:.4f}" for k, v in mean.items()), output_dir / "eval.json")
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="eval")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""Fitting a radiance field to posed images."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import kornia
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.models.base import FieldModule
+from nerf_lightning.rendering.renderer import render_rays
+
+
+class RadianceFieldModule(FieldModule):
+    """Trains a radiance field on random rays with an MSE loss on the rendered colour.
+
+    Logs ``train/loss`` and ``train/psnr`` every step; ``val/psnr``, ``val/ssim`` (kornia) and, where the scene
+    has true depth, ``val/depth_error`` (mean absolute error in scene units over pixels that see a surface)
+    over whole held-out views. Near, far and the background come from the scene at the start of fitting and
+    are kept in checkpoints.
+
+    Args:
+        field: the (coarse) field: ``field(points, directions) -> {"rgb", "density"}``, with ``density(points)``.
+        optimizer, scheduler: see :class:`~nerf_lightning.models.base.FieldModule`.
+        fine_field: the fine network of hierarchical sampling; None for a single network.
+        n_samples: stratified samples per ray.
+        n_fine_samples: importance samples per ray for the fine network.
+        chunk_size: rays rendered at once in evaluation, so memory stays bounded at any resolution.
+    """
+
+    kind = "radiance_field"
+
+    def __init__(
+        self,
+        field: nn.Module,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None = None,
+        fine_field: nn.Module | None = None,
+        n_samples: int = 64,
+        n_fine_samples: int = 0,
+        chunk_size: int = 4096,
+    ) -> None:
+        super().__init__(optimizer, scheduler)
+        self.field = field
+        self.fine_field = fine_field
+        self.n_samples = n_samples
+        self.n_fine_samples = n_fine_samples if fine_field is not None else 0
+        self.chunk_size = chunk_size
+        self.near, self.far = 2.0, 6.0
+        self.register_buffer("background", torch.ones(3))
+
+    def on_fit_start(self) -> None:
+        scene = getattr(getattr(self.trainer, "datamodule", None), "scene", None)
+        if scene is not None:
+            self.near, self.far = float(scene.near), float(scene.far)
+            self.background.copy_(scene.background)
+
+    def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False) -> dict[str, torch.Tensor]:
+        """(N, 3) rays -> rgb (N, 3), depth (N,), accumulation (N,) and more; see :func:`render_rays`."""
+        return render_rays(
+            self.field, rays_o, rays_d, self.near, self.far, self.n_samples, perturb, self.background,
+            fine_field=self.fine_field, n_fine_samples=self.n_fine_samples,
+        )
+
+    @torch.no_grad()
+    def render_chunked(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Evaluation render of any number of rays, ``chunk_size`` at a time: rgb, depth, accumulation."""
+        parts = [self.render(o, d) for o, d in zip(rays_o.split(self.chunk_size), rays_d.split(self.chunk_size))]
+        return {key: torch.cat([part[key] for part in parts]) for key in ("rgb", "depth", "accumulation")}
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        out = self.render(batch["rays_o"], batch["rays_d"], perturb=True)
+        loss = F.mse_loss(out["rgb"], batch["rgb"])
+        if "coarse_rgb" in out:
+            loss = loss + F.mse_loss(out["coarse_rgb"], batch["rgb"])
+            self.log("train/psnr_coarse", mse_to_psnr(F.mse_loss(out["coarse_rgb"].detach(), batch["rgb"])), on_step=True)
+        self.log("train/loss", loss, on_step=True, on_epoch=False)
+        self.log("train/psnr", mse_to_psnr(F.mse_loss(out["rgb"].detach(), batch["rgb"])), on_step=True, prog_bar=True)
+        return loss
+
+    def depth_image(self, depth: torch.Tensor) -> torch.Tensor:
+        """Depth normalised to [0, 1] between near and far (near bright), for pictures."""
+        return (1.0 - (depth - self.near) / (self.far - self.near)).clamp(0.0, 1.0)
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
+        height, width = batch["height"], batch["width"]
+        out = self.render_chunked(batch["rays_o"], batch["rays_d"])
+        rgb = out["rgb"].reshape(height, width, 3)
+        target = batch["rgb"].reshape(height, width, 3)
+        self.log("val/psnr", kornia.metrics.psnr(rgb, target, max_val=1.0), prog_bar=True, batch_size=1)
+        ssim = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11).mean()
+        self.log("val/ssim", ssim, batch_size=1)
+        if "depth" in batch:
+            surface = torch.isfinite(batch["depth"])
+            if surface.any():
+                self.log("val/depth_error", (out["depth"][surface] - batch["depth"][surface]).abs().mean(), batch_size=1)
+        depth = self.depth_image(out["depth"]) * out["accumulation"]
+        return {"images": {"rgb": rgb, "depth": depth.reshape(height, width), "target": target}}
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["scene_bounds"] = {"near": self.near, "far": self.far}
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        bounds = checkpoint.get("scene_bounds")
+        if bounds:
+            self.near, self.far = float(bounds["near"]), float(bounds["far"])

@@ -1,0 +1,55 @@
+"""Rendering rays through a field: stratified samples, optional hierarchical samples, compositing."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from nerf_lightning.rendering.samplers import deltas_of, sample_intervals, sample_pdf
+from nerf_lightning.rendering.volume import composite
+
+# a field: (points (N, S, 3), directions (N, S, 3)) -> {"rgb": (N, S, 3), "density": (N, S)}
+Field = Callable[[torch.Tensor, torch.Tensor], dict[str, torch.Tensor]]
+
+
+def _query(field: Field, rays_o, rays_d, t, deltas, background):
+    points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
+    out = field(points, rays_d[:, None, :].expand_as(points))
+    return composite(out["rgb"], out["density"], t, deltas, background)
+
+
+def render_rays(
+    field: Field,
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    near: float,
+    far: float,
+    n_samples: int,
+    perturb: bool,
+    background: torch.Tensor | None = None,
+    fine_field: Field | None = None,
+    n_fine_samples: int = 0,
+    generator: torch.Generator | None = None,
+) -> dict[str, torch.Tensor]:
+    """Render (N, 3) rays with unit directions.
+
+    ``n_samples`` stratified samples between near and far go through ``field``. With a ``fine_field`` and
+    ``n_fine_samples`` > 0 (NeRF's hierarchical sampling), that many more samples are drawn from the coarse
+    weights by inverse-CDF sampling and the fine field renders the union of both sets; the coarse result is
+    returned too, under ``coarse_*`` keys, for its own loss.
+
+    Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,), ``weights`` (N, S), ``t`` (N, S).
+    """
+    _, t, deltas = sample_intervals(rays_o, rays_d, near, far, n_samples, perturb, generator)
+    coarse = _query(field, rays_o, rays_d, t, deltas, background)
+    coarse["t"] = t
+    if fine_field is None or n_fine_samples <= 0:
+        return coarse
+    mids = 0.5 * (t[:, 1:] + t[:, :-1])  # bin edges between the coarse samples
+    t_fine = sample_pdf(mids, coarse["weights"][:, 1:-1], n_fine_samples, perturb, generator)
+    t_all = torch.sort(torch.cat([t, t_fine], dim=-1), dim=-1).values
+    fine = _query(fine_field, rays_o, rays_d, t_all, deltas_of(t_all, (far - near) / max(n_samples - 1, 1)), background)
+    fine["t"] = t_all
+    fine.update({f"coarse_{key}": value for key, value in coarse.items() if key in ("rgb", "depth", "accumulation")})
+    return fine

@@ -1,0 +1,89 @@
+"""A radiance-field preset trained for real: validation PSNR against steps and training time, JSON out.
+
+    .venv/bin/python scripts/bench_nerf.py --preset nerf_blender --root ../shared/data/nerf_synthetic/lego \\
+        --max-minutes 60 --val-every 100 --target 23 --out docs/bench/nerf_lego.json
+
+Trains ``experiment=<preset>`` through the shipped configs (extra Hydra overrides after ``--``) until
+``--steps`` or ``--max-minutes`` of wall time, or until the validation PSNR reaches ``--target`` (then it
+stops). Writes the JSON (curve of val/psnr with steps and training seconds, seconds per step, time to the
+target or null) and a plot beside it, and keeps the run folder (checkpoints: resume with --resume).
+Exits 0 with "skipped" when --root is given and missing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from nerf_lightning.config import compose_config
+from nerf_lightning.plots import plot_psnr_curves
+from nerf_lightning.train import train
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="nerf_procedural")
+    parser.add_argument("--root", type=Path, default=None, help="data.root of the preset (a Blender folder or an npz)")
+    parser.add_argument("--steps", type=int, default=200_000)
+    parser.add_argument("--max-minutes", type=float, default=60.0)
+    parser.add_argument("--val-every", type=int, default=100)
+    parser.add_argument("--val-views", type=int, default=2)
+    parser.add_argument("--target", type=float, default=None, help="stop once val/psnr reaches this (dB)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--run-dir", type=Path, default=None, help="where the run goes (default: beside --out)")
+    parser.add_argument("--resume", action="store_true", help="continue from <run-dir>/checkpoints/last.ckpt")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("overrides", nargs="*", help="more Hydra overrides, after --")
+    args = parser.parse_args()
+
+    if args.root is not None and not args.root.exists():
+        print(json.dumps({"skipped": f"data not found: {args.root}"}))
+        return
+    run_dir = args.run_dir or args.out.with_suffix("")
+    minutes = int(args.max_minutes)
+    overrides = [
+        f"experiment={args.preset}", f"trainer.max_steps={args.steps}", f"data.val_every={args.val_every}",
+        f"data.val_views={args.val_views}", f"seed={args.seed}", f"paths.output_dir={run_dir}",
+        "trainer.enable_progress_bar=false", f"trainer.max_time={{minutes: {minutes}, seconds: {round((args.max_minutes - minutes) * 60)}}}",
+        *args.overrides,
+    ]
+    if args.root is not None:
+        overrides.append(f"data.root={args.root.resolve()}")
+    if args.target is not None:
+        overrides.append(f"+callbacks.stop_at_target={{_target_: lightning.pytorch.callbacks.EarlyStopping, monitor: val/psnr, "
+                         f"mode: max, stopping_threshold: {args.target}, patience: 1000000, check_on_train_epoch_end: false}}")
+    if args.resume:
+        overrides.append(f"ckpt_path={run_dir / 'checkpoints' / 'last.ckpt'}")
+    cfg = compose_config(overrides)
+    started = time.perf_counter()
+    metrics = train(cfg)
+    wall = time.perf_counter() - started
+
+    history = json.loads((run_dir / "psnr_history.json").read_text())
+    steps, seconds = history["train_step"], history["train_seconds"]
+    reached = next((t for t, p in zip(history["val_seconds"], history["val_psnr"]) if args.target and p >= args.target), None)
+    reached_step = next((s for s, p in zip(history["val_step"], history["val_psnr"]) if args.target and p >= args.target), None)
+    result = {
+        "preset": args.preset, "root": str(args.root) if args.root else None, "overrides": overrides, "seed": args.seed,
+        "steps": metrics["step"], "final_val_psnr": metrics.get("val/psnr"), "final_val_ssim": metrics.get("val/ssim"),
+        "final_val_depth_error": metrics.get("val/depth_error"),
+        "training_seconds": seconds[-1] if seconds else None, "wall_seconds_with_validation": round(wall, 1),
+        "seconds_per_step": round((seconds[-1] - seconds[0]) / max(steps[-1] - steps[0], 1), 4) if len(steps) > 1 else None,
+        "target_psnr": args.target, "target_reached_at_seconds": reached, "target_reached_at_step": reached_step,
+        "val_curve": [{"step": s, "seconds": t, "psnr": round(p, 3)} for s, t, p in zip(history["val_step"], history["val_seconds"], history["val_psnr"])],
+        "torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.machine(),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    plot_psnr_curves({f"{args.preset} val": (history["val_seconds"], history["val_psnr"])}, args.out.with_suffix(".png"),
+                     title=f"{args.preset}: validation PSNR against training time", xlabel="training seconds")
+    print(json.dumps({k: v for k, v in result.items() if k not in ("val_curve", "overrides")}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

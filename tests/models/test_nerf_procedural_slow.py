@@ -1,0 +1,33 @@
+"""The nerf_procedural preset as shipped, trained for real (about 10 minutes on 2 cores): quality, depth, mesh.
+
+Run with ``.venv/bin/python -m pytest -m slow``.
+"""
+
+import pytest
+
+from nerf_lightning.config import compose_config
+from nerf_lightning.data.formats import load_procedural
+from nerf_lightning.data.formats.surface import chamfer_to_surface
+from nerf_lightning.export import export, read_ply_vertices
+from nerf_lightning.train import train
+
+# Measured with these settings (seed 0, docs/benchmarks.md): val PSNR 25.5 dB, SSIM 0.93, depth error 0.058,
+# the mesh's Chamfer distance to the true surfaces 0.021 (one grid step of the 128^3 export is 0.024).
+# The bars keep a margin for another machine's arithmetic: 23 dB (the course's bar), depth error 0.1
+# (the best constant guess errs by 0.36 on these views), Chamfer 0.05 (two grid steps; a sphere fitted
+# around the objects scores 0.24 to 0.31).
+
+
+@pytest.mark.slow
+def test_nerf_procedural_preset_reaches_its_figures(tmp_path, scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    run = tmp_path / "run"
+    metrics = train(compose_config(["experiment=nerf_procedural", "trainer.enable_progress_bar=false", f"paths.output_dir={run}"]))
+    assert metrics["step"] == 3000
+    assert metrics["val/psnr"] > 23.0
+    assert metrics["val/depth_error"] < 0.1
+
+    mesh = export(compose_config([f"ckpt_path={run / 'checkpoints' / 'best.ckpt'}", f"output_dir={tmp_path / 'mesh'}"], config_name="export"))
+    vertices, _ = read_ply_vertices(mesh)
+    distances = chamfer_to_surface(vertices, load_procedural(cache_dir=scene_cache).splits["test"])
+    assert distances["chamfer"] < 0.05

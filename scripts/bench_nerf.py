@@ -45,11 +45,12 @@ def main() -> None:
         print(json.dumps({"skipped": f"data not found: {args.root}"}))
         return
     run_dir = args.run_dir or args.out.with_suffix("")
-    minutes = int(args.max_minutes)
+    seconds_budget = round(args.max_minutes * 60)
+    max_time = f"{seconds_budget // 86400:02d}:{seconds_budget // 3600 % 24:02d}:{seconds_budget // 60 % 60:02d}:{seconds_budget % 60:02d}"
     overrides = [
         f"experiment={args.preset}", f"trainer.max_steps={args.steps}", f"data.val_every={args.val_every}",
         f"data.val_views={args.val_views}", f"seed={args.seed}", f"paths.output_dir={run_dir}",
-        "trainer.enable_progress_bar=false", f"trainer.max_time={{minutes: {minutes}, seconds: {round((args.max_minutes - minutes) * 60)}}}",
+        "trainer.enable_progress_bar=false", f"trainer.max_time='{max_time}'",
         *args.overrides,
     ]
     if args.root is not None:

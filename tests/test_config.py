@@ -28,3 +28,25 @@ def test_unknown_key_on_the_command_line_exits_non_zero_naming_it(tmp_path):
     assert result.returncode != 0
     assert "data.pth" in result.stderr
     assert not (tmp_path / "outputs").exists() or not any((tmp_path / "outputs").rglob("metrics.json"))
+
+
+def test_radiance_presets_compose_their_recipes():
+    course = compose_config(["experiment=nerf_course", "data.root=lego.npz", "paths.output_dir=/tmp/x"])
+    assert course.data.scene._target_.endswith("load_npz") and course.data.root == "lego.npz"
+    assert (course.data.scene.near, course.data.scene.far, course.model.n_samples, course.data.batch_size) == (2.0, 6.0, 64, 10_000)
+    assert course.model.optimizer.lr == 5e-4 and course.model.fine_field is None
+
+    blender = compose_config(["experiment=nerf_blender", "data.root=lego", "paths.output_dir=/tmp/x"])
+    assert blender.data.scene.downscale == 4 and blender.data.batch_size == 2048
+    assert blender.model.fine_field.hidden_layers == 8 and blender.model.n_fine_samples == 128
+    assert blender.model.scheduler.final_ratio == 0.1 and blender.model.scheduler.steps == blender.trainer.max_steps
+
+    procedural = compose_config(["experiment=nerf_procedural", "paths.output_dir=/tmp/x"])
+    assert procedural.data.scene._target_.endswith("load_procedural") and procedural.trainer.max_steps == 3000
+
+
+def test_the_paper_model_is_the_default_nerf():
+    cfg = compose_config(["model=nerf", "data=procedural", "paths.output_dir=/tmp/x"])
+    field = cfg.model.field
+    assert (field.position_frequencies, field.direction_frequencies, field.hidden_width, field.hidden_layers, field.skip_layer, field.view_width) == (10, 4, 256, 8, 4, 128)
+    assert cfg.model.fine_field == field and (cfg.model.n_samples, cfg.model.n_fine_samples) == (64, 128)

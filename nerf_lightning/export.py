@@ -11,7 +11,7 @@ import torch
 from omegaconf import DictConfig
 
 from nerf_lightning.checkpoints import load_model
-from nerf_lightning.io import write_atomic
+from nerf_lightning.io import to_uint8, write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +45,7 @@ def vertex_colours(field, vertices: np.ndarray, chunk: int = 16_384) -> np.ndarr
         direction = torch.nn.functional.normalize(gradient, dim=-1)
         with torch.no_grad():
             colours.append(field(points.detach(), direction)["rgb"])
-    rgb = torch.cat(colours) if colours else torch.zeros(0, 3)
-    return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+    return to_uint8(torch.cat(colours) if colours else torch.zeros(0, 3))
 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:

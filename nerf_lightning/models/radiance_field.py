@@ -74,12 +74,14 @@ class RadianceFieldModule(FieldModule):
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         out = self.render(batch["rays_o"], batch["rays_d"], perturb=True)
-        loss = F.mse_loss(out["rgb"], batch["rgb"])
+        mse = F.mse_loss(out["rgb"], batch["rgb"])
+        loss = mse
         if "coarse_rgb" in out:
-            loss = loss + F.mse_loss(out["coarse_rgb"], batch["rgb"])
-            self.log("train/psnr_coarse", mse_to_psnr(F.mse_loss(out["coarse_rgb"].detach(), batch["rgb"])), on_step=True)
+            coarse_mse = F.mse_loss(out["coarse_rgb"], batch["rgb"])
+            loss = loss + coarse_mse
+            self.log("train/psnr_coarse", mse_to_psnr(coarse_mse.detach()), on_step=True)
         self.log("train/loss", loss, on_step=True, on_epoch=False)
-        self.log("train/psnr", mse_to_psnr(F.mse_loss(out["rgb"].detach(), batch["rgb"])), on_step=True, prog_bar=True)
+        self.log("train/psnr", mse_to_psnr(mse.detach()), on_step=True, prog_bar=True)
         return loss
 
     def depth_image(self, depth: torch.Tensor) -> torch.Tensor:

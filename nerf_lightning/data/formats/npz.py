@@ -18,6 +18,7 @@ import torch
 from nerf_lightning.data.scene import Scene, Views
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 from nerf_lightning.geometry.paths import look_at_point
+from nerf_lightning.io import to_uint8
 
 REQUIRED_KEYS = ("images_train", "c2ws_train", "images_val", "c2ws_val", "c2ws_test", "focal")
 
@@ -110,9 +111,6 @@ def save_npz(scene: Scene, path: str | Path, convention: str = "opencv") -> Path
     convert = opengl_to_opencv if convention == "opengl" else (lambda matrix: matrix)
     render = scene.splits.get("render", scene.splits.get("test", scene.train))
     held_out = scene.held_out()
-
-    def to_uint8(images: torch.Tensor) -> np.ndarray:
-        return (images.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy()
 
     np.savez(
         path,

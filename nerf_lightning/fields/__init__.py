@@ -1,8 +1,12 @@
 """Fields: functions of position (and direction) made of encodings and MLPs."""
 
-from nerf_lightning.fields.encodings import SinusoidalEncoding
+from nerf_lightning.fields.encodings import SinusoidalEncoding, SphericalHarmonicsEncoding
+from nerf_lightning.fields.hash_grid import HashGridEncoding
 from nerf_lightning.fields.image_field import ImageField
 from nerf_lightning.fields.mlp import MLP
 from nerf_lightning.fields.nerf import NeRFField
+from nerf_lightning.fields.ngp import HashGridField
 
-__all__ = ["MLP", "ImageField", "NeRFField", "SinusoidalEncoding"]
+__all__ = [
+    "MLP", "HashGridEncoding", "HashGridField", "ImageField", "NeRFField", "SinusoidalEncoding", "SphericalHarmonicsEncoding",
+]

@@ -44,3 +44,43 @@ class SinusoidalEncoding(nn.Module):
         angles = x[..., None, :] * self.frequencies[:, None]  # (..., L, D)
         features = torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1).flatten(-2)  # (..., L * 2D)
         return torch.cat([x, features], dim=-1) if self.include_input else features
+
+
+class SphericalHarmonicsEncoding(nn.Module):
+    """Real spherical harmonics of a unit direction up to degree ``degree - 1`` (Instant-NGP's direction encoding).
+
+    (..., 3) unit vectors -> (..., degree**2) features; ``degree`` 1 to 4 (1, 4, 9 or 16 features). The
+    constants are those of the real, orthonormal basis (as in tiny-cuda-nn and nerfstudio).
+    """
+
+    def __init__(self, degree: int = 4) -> None:
+        super().__init__()
+        if not 1 <= degree <= 4:
+            raise ValueError(f"SphericalHarmonicsEncoding degree must be 1 to 4, got {degree}")
+        self.degree = degree
+
+    @property
+    def out_dim(self) -> int:
+        return self.degree**2
+
+    def forward(self, directions: torch.Tensor) -> torch.Tensor:
+        """(..., 3) -> (..., degree**2)"""
+        if directions.shape[-1] != 3:
+            raise ValueError(f"SphericalHarmonicsEncoding expected (..., 3) directions, got {tuple(directions.shape)}")
+        x, y, z = directions.unbind(-1)
+        terms = [torch.full_like(x, 0.28209479177387814)]
+        if self.degree > 1:
+            terms += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
+        if self.degree > 2:
+            xx, yy, zz = x * x, y * y, z * z
+            terms += [
+                1.0925484305920792 * x * y, -1.0925484305920792 * y * z, 0.94617469575755997 * zz - 0.31539156525251999,
+                -1.0925484305920792 * x * z, 0.54627421529603959 * (xx - yy),
+            ]
+        if self.degree > 3:
+            terms += [
+                0.59004358992664352 * y * (3 * xx - yy), 2.8906114426405538 * x * y * z, 0.45704579946446572 * y * (1 - 5 * zz),
+                0.3731763325901154 * z * (5 * zz - 3), 0.45704579946446572 * x * (1 - 5 * zz), 1.4453057213202769 * z * (xx - yy),
+                0.59004358992664352 * x * (xx - 3 * yy),
+            ]
+        return torch.stack(terms, dim=-1)

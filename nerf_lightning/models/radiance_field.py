@@ -12,7 +12,8 @@ from torch import nn
 
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import FieldModule
-from nerf_lightning.rendering.renderer import render_rays
+from nerf_lightning.rendering.occupancy import OccupancyGrid
+from nerf_lightning.rendering.renderer import render_rays, render_rays_marched
 
 
 class RadianceFieldModule(FieldModule):
@@ -30,6 +31,13 @@ class RadianceFieldModule(FieldModule):
         n_samples: stratified samples per ray.
         n_fine_samples: importance samples per ray for the fine network.
         chunk_size: rays rendered at once in evaluation, so memory stays bounded at any resolution.
+        occupancy_grid: empty-space skipping: rays are marched through the grid's occupied cells (packed
+            samples, see :func:`~nerf_lightning.rendering.renderer.render_rays_marched`) instead of sampled at
+            ``n_samples`` points, and the grid is refreshed from ``field.density`` as training goes. Works with
+            any field; not with a fine field.
+        render_step_size: the marcher's step; None for (far - near) / n_samples, the stratified spacing.
+        alpha_threshold, early_stop_eps: the marcher drops samples less opaque than this and samples where the
+            transmittance is below that.
     """
 
     kind = "radiance_field"
@@ -43,13 +51,21 @@ class RadianceFieldModule(FieldModule):
         n_samples: int = 64,
         n_fine_samples: int = 0,
         chunk_size: int = 4096,
+        occupancy_grid: OccupancyGrid | None = None,
+        render_step_size: float | None = None,
+        alpha_threshold: float = 0.0,
+        early_stop_eps: float = 1e-4,
     ) -> None:
         super().__init__(optimizer, scheduler)
+        if occupancy_grid is not None and fine_field is not None and n_fine_samples > 0:
+            raise ValueError("model: occupancy_grid replaces hierarchical sampling; set model.fine_field=null or model.occupancy_grid=null")
         self.field = field
         self.fine_field = fine_field
         self.n_samples = n_samples
         self.n_fine_samples = n_fine_samples if fine_field is not None else 0
         self.chunk_size = chunk_size
+        self.occupancy_grid = occupancy_grid
+        self.render_step_size, self.alpha_threshold, self.early_stop_eps = render_step_size, alpha_threshold, early_stop_eps
         self.near, self.far = 2.0, 6.0
         self.register_buffer("background", torch.ones(3))
 
@@ -59,8 +75,18 @@ class RadianceFieldModule(FieldModule):
             self.near, self.far = float(scene.near), float(scene.far)
             self.background.copy_(scene.background)
 
+    @property
+    def step_size(self) -> float:
+        """The marcher's step along unit rays."""
+        return self.render_step_size or (self.far - self.near) / self.n_samples
+
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False) -> dict[str, torch.Tensor]:
         """(N, 3) rays -> rgb (N, 3), depth (N,), accumulation (N,) and more; see :func:`render_rays`."""
+        if self.occupancy_grid is not None:
+            return render_rays_marched(
+                self.field, self.occupancy_grid, rays_o, rays_d, self.near, self.far, self.step_size, perturb, self.background,
+                self.alpha_threshold, self.early_stop_eps,
+            )
         return render_rays(
             self.field, rays_o, rays_d, self.near, self.far, self.n_samples, perturb, self.background,
             fine_field=self.fine_field, n_fine_samples=self.n_fine_samples,
@@ -73,7 +99,11 @@ class RadianceFieldModule(FieldModule):
         return {key: torch.cat([part[key] for part in parts]) for key in ("rgb", "depth", "accumulation")}
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        if self.occupancy_grid is not None:
+            self.occupancy_grid.update(self.global_step, self.field.density, self.step_size)
         out = self.render(batch["rays_o"], batch["rays_d"], perturb=True)
+        if "n_samples" in out:
+            self.log("train/samples_per_ray", out["n_samples"].float() / batch["rays_o"].shape[0], on_step=True)
         mse = F.mse_loss(out["rgb"], batch["rgb"])
         loss = mse
         if "coarse_rgb" in out:

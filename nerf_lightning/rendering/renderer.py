@@ -6,6 +6,8 @@ from collections.abc import Callable
 
 import torch
 
+from nerf_lightning.rendering.occupancy import OccupancyGrid, march_rays
+from nerf_lightning.rendering.packed import composite_packed
 from nerf_lightning.rendering.samplers import deltas_of, sample_intervals, sample_pdf
 from nerf_lightning.rendering.volume import composite
 
@@ -53,3 +55,35 @@ def render_rays(
     fine["t"] = t_all
     fine.update({f"coarse_{key}": value for key, value in coarse.items() if key in ("rgb", "depth", "accumulation")})
     return fine
+
+
+def render_rays_marched(
+    field: Field,
+    grid: OccupancyGrid,
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    near: float,
+    far: float,
+    step_size: float,
+    perturb: bool,
+    background: torch.Tensor | None = None,
+    alpha_threshold: float = 0.0,
+    early_stop_eps: float = 1e-4,
+    generator: torch.Generator | None = None,
+) -> dict[str, torch.Tensor]:
+    """Render (N, 3) rays with unit directions through the occupied cells of ``grid`` only (empty-space skipping).
+
+    ``field`` must have ``density(points)`` as well; see :func:`~nerf_lightning.rendering.occupancy.march_rays`
+    for the sampling. Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,) and ``n_samples`` (the
+    number of samples the field was evaluated at, a 0-d tensor).
+    """
+    ray_indices, t_starts, t_ends = march_rays(
+        grid, rays_o, rays_d, near, far, step_size, perturb, generator,
+        density_fn=field.density, alpha_threshold=alpha_threshold, early_stop_eps=early_stop_eps,
+    )
+    t_mid = 0.5 * (t_starts + t_ends)
+    points = rays_o[ray_indices] + rays_d[ray_indices] * t_mid[:, None]
+    out = field(points, rays_d[ray_indices])
+    result = composite_packed(out["rgb"], out["density"], t_starts, t_ends, ray_indices, rays_o.shape[0], background)
+    result["n_samples"] = torch.tensor(len(ray_indices))
+    return result

@@ -1,0 +1,185 @@
+"""Empty-space skipping: an occupancy grid over the scene's box and a ray marcher that only samples occupied cells.
+
+As in nerfacc's ``OccGridEstimator``: the grid keeps, for each of R^3 cells, a running (EMA) estimate of the
+opacity ``density * step_size`` the field has there, refreshed every few training steps from the field itself;
+a cell is occupied where that estimate exceeds ``min(threshold, mean)``. The marcher steps along each ray
+through the box at a fixed step, keeps the steps whose midpoint is in an occupied cell and, given the field's
+density, drops the steps that are nearly transparent or that lie behind where the ray is nearly opaque.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from nerf_lightning.rendering.packed import exclusive_sum_packed
+
+# points (M, 3) -> densities (M,)
+DensityFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+class PackedSamples(NamedTuple):
+    """M samples of N rays, packed: ``ray_indices`` (M,) non-decreasing, ``t_starts`` and ``t_ends`` (M,)."""
+
+    ray_indices: torch.Tensor
+    t_starts: torch.Tensor
+    t_ends: torch.Tensor
+
+
+def ray_aabb_intersect(rays_o: torch.Tensor, rays_d: torch.Tensor, aabb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Slab test. (N, 3) rays and a (6,) box -> t_enter, t_exit (N,); the ray misses where t_exit < t_enter."""
+    safe_d = torch.where(rays_d.abs() < 1e-12, torch.full_like(rays_d, 1e-12), rays_d)
+    t0, t1 = (aabb[:3] - rays_o) / safe_d, (aabb[3:] - rays_o) / safe_d
+    return torch.minimum(t0, t1).amax(dim=-1), torch.maximum(t0, t1).amin(dim=-1)
+
+
+class OccupancyGrid(nn.Module):
+    """A binary occupancy grid over an axis-aligned box, kept up to date from a field's density.
+
+    Args:
+        aabb: the box, 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax).
+        resolution: R, cells a side.
+        update_every: refresh the grid every this many training steps.
+        warmup_steps: before this step a refresh evaluates every cell and replaces the estimate; after it,
+            R^3 / 4 random cells and as many random occupied ones (nerfacc's schedule) are refreshed by the EMA.
+        decay: the EMA factor a refreshed cell's old estimate is multiplied by before the max with the new one.
+            (nerfacc decays during warmup too; with 0.95 a cell the untrained field fills then stays occupied
+            for about 14 refreshes, which on a CPU costs minutes of marching through empty space.)
+        threshold: opacity (density x step size) above which a cell is occupied; lowered to the grid's mean
+            opacity where that is smaller, so that a field of low density everywhere is not all empty.
+        seed: cells and jitter of refresh k are drawn from ``seed + k``, so a resumed run refreshes alike.
+
+    Buffers ``occupancy`` (R, R, R) float and ``binary`` (R, R, R) bool go into checkpoints. The grid starts
+    all occupied (nothing is skipped before the first refresh).
+    """
+
+    def __init__(
+        self,
+        aabb: Sequence[float],
+        resolution: int = 128,
+        update_every: int = 16,
+        warmup_steps: int = 256,
+        decay: float = 0.95,
+        threshold: float = 0.01,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        aabb = torch.as_tensor(list(aabb), dtype=torch.float32)
+        if aabb.shape != (6,) or not bool((aabb[3:] > aabb[:3]).all()):
+            raise ValueError(f"OccupancyGrid: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {aabb.tolist()}")
+        if resolution < 1 or update_every < 1:
+            raise ValueError(f"OccupancyGrid needs resolution >= 1 and update_every >= 1, got {resolution}, {update_every}")
+        self.resolution, self.update_every, self.warmup_steps = resolution, update_every, warmup_steps
+        self.decay, self.threshold, self.seed = decay, threshold, seed
+        self.register_buffer("aabb", aabb)
+        self.register_buffer("occupancy", torch.zeros(resolution, resolution, resolution))
+        self.register_buffer("binary", torch.ones(resolution, resolution, resolution, dtype=torch.bool))
+
+    def cell_of(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., 3) points -> (..., 3) integer cell coordinates (clamped) and (...,) whether the point is in the box."""
+        unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
+        inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
+        return (unit * self.resolution).long().clamp(0, self.resolution - 1), inside
+
+    def occupied(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) points -> (...,) bool: inside the box and in an occupied cell."""
+        cells, inside = self.cell_of(points)
+        return self.binary[cells[..., 0], cells[..., 1], cells[..., 2]] & inside
+
+    def cell_centres(self) -> torch.Tensor:
+        """(R, R, R, 3) the centres of the cells, in scene coordinates."""
+        axis = (torch.arange(self.resolution, device=self.aabb.device, dtype=self.aabb.dtype) + 0.5) / self.resolution
+        unit = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1)
+        return self.aabb[:3] + unit * (self.aabb[3:] - self.aabb[:3])
+
+    @torch.no_grad()
+    def update(self, step: int, density_fn: DensityFn, step_size: float, chunk_size: int = 65536) -> bool:
+        """Refresh the grid at training ``step`` if it is due; returns whether it refreshed.
+
+        ``density_fn``: (M, 3) points -> (M,) densities, evaluated at a random point of each chosen cell.
+        ``step_size``: the marcher's step, which turns density into opacity.
+        """
+        if step % self.update_every != 0:
+            return False
+        count = self.resolution**3
+        generator = torch.Generator().manual_seed(self.seed + step)
+        if step < self.warmup_steps:
+            cells = torch.arange(count)
+        else:
+            uniform = torch.randint(count, (count // 4,), generator=generator)
+            occupied = self.binary.flatten().nonzero()[:, 0].cpu()
+            picked = occupied[torch.randint(len(occupied), (count // 4,), generator=generator)] if len(occupied) else occupied
+            cells = torch.cat([uniform, picked])
+        coords = torch.stack([cells // self.resolution**2, cells // self.resolution % self.resolution, cells % self.resolution], dim=-1)
+        unit = (coords + torch.rand(coords.shape, generator=generator)) / self.resolution
+        cells, unit = cells.to(self.aabb.device), unit.to(self.aabb)
+        points = self.aabb[:3] + unit * (self.aabb[3:] - self.aabb[:3])
+        density = torch.cat([density_fn(part) for part in points.split(chunk_size)])
+        occupancy, estimate = self.occupancy.view(-1), density.to(self.occupancy) * step_size
+        if step < self.warmup_steps:  # every cell was just evaluated: take the new estimate as it is
+            occupancy.copy_(estimate)
+        else:
+            occupancy[cells] = torch.maximum(occupancy[cells] * self.decay, estimate)
+        self.binary.copy_(self.occupancy > min(self.threshold, float(self.occupancy.mean())))
+        return True
+
+    def mark_from_density(self, density_fn: DensityFn, step_size: float, chunk_size: int = 65536) -> None:
+        """Set the grid at once from the density at the cell centres (no EMA): for a known field or a checkpoint."""
+        with torch.no_grad():
+            points = self.cell_centres().reshape(-1, 3)
+            density = torch.cat([density_fn(part) for part in points.split(chunk_size)])
+            self.occupancy.copy_((density * step_size).reshape(self.occupancy.shape))
+            self.binary.copy_(self.occupancy > min(self.threshold, float(self.occupancy.mean())))
+
+
+def march_rays(
+    grid: OccupancyGrid,
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    near: float,
+    far: float,
+    step_size: float,
+    perturb: bool,
+    generator: torch.Generator | None = None,
+    density_fn: DensityFn | None = None,
+    alpha_threshold: float = 0.0,
+    early_stop_eps: float = 0.0,
+) -> PackedSamples:
+    """March (N, 3) rays (unit directions) through the grid's box between near and far; packed samples of occupied cells.
+
+    Steps are ``step_size`` long from where a ray enters the box (after ``near``), shifted by one random
+    fraction of a step per ray when ``perturb``; the last is cut at the exit (or ``far``), so that no sample
+    reaches beyond far. A step is kept where its midpoint lies in an occupied cell. With ``density_fn`` the
+    kept steps are evaluated once without gradients, and those with opacity below ``alpha_threshold`` or
+    transmittance below ``early_stop_eps`` (the ray has already ended) are dropped as well.
+    """
+    n_rays = rays_o.shape[0]
+    t_enter, t_exit = ray_aabb_intersect(rays_o, rays_d, grid.aabb)
+    t_enter, t_exit = t_enter.clamp(min=near), t_exit.clamp(max=far)
+    length = (t_exit - t_enter).clamp(min=0.0)
+    n_steps = int(math.ceil(float(length.max()) / step_size)) if n_rays else 0
+    if perturb:
+        shift = torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype).to(rays_o.device)
+    else:
+        shift = torch.zeros(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device)
+    steps = torch.arange(n_steps, dtype=rays_o.dtype, device=rays_o.device)
+    t_starts = t_enter[:, None] + (steps + shift) * step_size  # (N, n_steps)
+    t_ends = torch.minimum(t_starts + step_size, t_exit[:, None])
+    midpoints = rays_o[:, None, :] + rays_d[:, None, :] * (0.5 * (t_starts + t_ends))[..., None]
+    keep = (t_starts < t_exit[:, None]) & grid.occupied(midpoints)
+    ray_indices = keep.nonzero()[:, 0]  # row-major: by ray, then by distance
+    samples = PackedSamples(ray_indices, t_starts[keep], t_ends[keep])
+    if density_fn is None or (alpha_threshold <= 0.0 and early_stop_eps <= 0.0) or len(ray_indices) == 0:
+        return samples
+    with torch.no_grad():
+        t_mid = 0.5 * (samples.t_starts + samples.t_ends)
+        density = density_fn(rays_o[ray_indices] + rays_d[ray_indices] * t_mid[:, None])
+        optical_depth = density * (samples.t_ends - samples.t_starts)
+        alpha = 1.0 - torch.exp(-optical_depth)
+        transmittance = torch.exp(-exclusive_sum_packed(optical_depth, ray_indices, n_rays))
+        keep = (alpha >= alpha_threshold) & (transmittance >= early_stop_eps)
+    return PackedSamples(*(part[keep] for part in samples))

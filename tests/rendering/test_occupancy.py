@@ -1,0 +1,187 @@
+"""Empty-space skipping: the occupancy grid, the ray marcher and packed compositing."""
+
+import math
+
+import torch
+
+from nerf_lightning.data.formats.procedural import surface_distance, trace
+from nerf_lightning.rendering import (
+    OccupancyGrid,
+    composite,
+    composite_packed,
+    exclusive_sum_packed,
+    march_rays,
+    ray_aabb_intersect,
+)
+
+UNIT_BOX = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+
+
+def rays_towards_origin(count: int, seed: int, radius: float = 4.0, spread: float = 0.8) -> tuple[torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator), dim=-1) * radius
+    targets = (torch.rand(count, 3, generator=generator) * 2 - 1) * spread
+    return origins, torch.nn.functional.normalize(targets - origins, dim=-1)
+
+
+def test_ray_box_intersection():
+    aabb = torch.tensor(UNIT_BOX)
+    rays_o = torch.tensor([[-3.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-3.0, 2.0, 0.0]])
+    rays_d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    enter, exit_ = ray_aabb_intersect(rays_o, rays_d, aabb)
+    torch.testing.assert_close(enter[:2], torch.tensor([2.0, -1.0]))
+    torch.testing.assert_close(exit_[:2], torch.tensor([4.0, 1.0]))
+    assert exit_[2] < enter[2]  # misses
+
+
+def test_exclusive_sum_packed_restarts_at_every_ray():
+    values = torch.tensor([1.0, 2.0, 3.0, 10.0, 20.0, 5.0])
+    ray_indices = torch.tensor([0, 0, 0, 2, 2, 3])
+    got = exclusive_sum_packed(values, ray_indices, n_rays=4)
+    torch.testing.assert_close(got, torch.tensor([0.0, 1.0, 3.0, 0.0, 10.0, 0.0]))
+
+
+def test_packed_compositing_equals_dense_compositing_of_the_same_samples():
+    generator = torch.Generator().manual_seed(0)
+    n_rays, n_samples = 6, 9
+    t = torch.sort(2 + 4 * torch.rand(n_rays, n_samples + 1, generator=generator, dtype=torch.float64), dim=-1).values
+    t_starts, t_ends = t[:, :-1], t[:, 1:]
+    density = 3 * torch.rand(n_rays, n_samples, generator=generator, dtype=torch.float64)
+    rgb = torch.rand(n_rays, n_samples, 3, generator=generator, dtype=torch.float64)
+    background = torch.tensor([0.2, 0.5, 1.0], dtype=torch.float64)
+    # every ray keeps a different number of its samples (ray 4 none): packed against each ray composited alone
+    counts = [9, 1, 5, 7, 0, 3]
+    keep = torch.arange(n_samples)[None, :] < torch.tensor(counts)[:, None]
+    ray_indices = torch.arange(n_rays)[:, None].expand(-1, n_samples)[keep]
+    packed = composite_packed(rgb[keep], density[keep], t_starts[keep], t_ends[keep], ray_indices, n_rays, background)
+    for ray, count in enumerate(counts):
+        if count == 0:
+            torch.testing.assert_close(packed["rgb"][ray], background)
+            assert packed["accumulation"][ray] == 0
+            continue
+        s = slice(0, count)
+        dense = composite(rgb[ray : ray + 1, s], density[ray : ray + 1, s], (0.5 * (t_starts + t_ends))[ray : ray + 1, s],
+                          (t_ends - t_starts)[ray : ray + 1, s], background)
+        for key in ("rgb", "depth", "accumulation"):
+            torch.testing.assert_close(packed[key][ray], dense[key][0])
+        torch.testing.assert_close(packed["weights"][ray_indices == ray], dense["weights"][0])
+
+
+def test_packed_compositing_is_differentiable():
+    generator = torch.Generator().manual_seed(1)
+    density = torch.rand(7, generator=generator, dtype=torch.float64, requires_grad=True)
+    rgb = torch.rand(7, 3, generator=generator, dtype=torch.float64, requires_grad=True)
+    t = torch.linspace(2, 3, 8, dtype=torch.float64)
+    ray_indices = torch.tensor([0, 0, 0, 1, 1, 1, 1])
+
+    def render(density, rgb):
+        return composite_packed(rgb, density, t[:-1], t[1:], ray_indices, 2, torch.ones(3, dtype=torch.float64))["rgb"]
+
+    assert torch.autograd.gradcheck(render, (density, rgb))
+
+
+def random_grid(seed: int, fraction: float, resolution: int = 16) -> OccupancyGrid:
+    grid = OccupancyGrid(UNIT_BOX, resolution=resolution)
+    grid.binary.copy_(torch.rand(grid.binary.shape, generator=torch.Generator().manual_seed(seed)) < fraction)
+    return grid
+
+
+def test_marched_samples_lie_in_occupied_cells_between_near_and_far_in_order():
+    grid = random_grid(seed=0, fraction=0.3)
+    rays_o, rays_d = rays_towards_origin(200, seed=1)
+    near, far = 3.2, 4.6  # cuts into the box from both sides for many rays
+    generator = torch.Generator().manual_seed(2)
+    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, near, far, step_size=0.05, perturb=True, generator=generator)
+    assert len(ray_indices) > 100
+    midpoints = rays_o[ray_indices] + rays_d[ray_indices] * (0.5 * (t_starts + t_ends))[:, None]
+    assert grid.occupied(midpoints).all()
+    assert (t_starts >= near).all() and (t_ends <= far + 1e-6).all() and (t_ends > t_starts).all()
+    assert (ray_indices[1:] >= ray_indices[:-1]).all()
+    same_ray = ray_indices[1:] == ray_indices[:-1]
+    assert (t_starts[1:][same_ray] >= t_ends[:-1][same_ray] - 1e-6).all()
+
+
+def test_marching_an_all_occupied_grid_covers_each_ray_inside_the_box_exactly():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8)  # starts all occupied
+    rays_o, rays_d = rays_towards_origin(50, seed=3)
+    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, 0.0, 10.0, step_size=0.03, perturb=False)
+    enter, exit_ = ray_aabb_intersect(rays_o, rays_d, grid.aabb)
+    covered = torch.zeros(50).index_add_(0, ray_indices, t_ends - t_starts)
+    torch.testing.assert_close(covered, exit_ - enter, atol=1e-4, rtol=0)
+    counts = torch.bincount(ray_indices, minlength=50)
+    assert (counts == torch.ceil((exit_ - enter) / 0.03 - 1e-4)).all()
+
+
+def test_an_empty_grid_gives_no_samples_and_the_background():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8)
+    grid.binary.zero_()
+    rays_o, rays_d = rays_towards_origin(10, seed=4)
+    samples = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.05, perturb=True)
+    assert len(samples.ray_indices) == 0
+
+
+def test_early_stopping_drops_only_samples_behind_an_opaque_surface():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8)
+    rays_o, rays_d = rays_towards_origin(64, seed=5, spread=0.3)
+
+    def density(points):  # an opaque ball of radius 0.5
+        return 50.0 * (points.norm(dim=-1) < 0.5).to(points.dtype)
+
+    everything = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False)
+    culled = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False, density_fn=density, early_stop_eps=1e-4)
+    assert len(culled.ray_indices) < 0.8 * len(everything.ray_indices)
+
+    def render(samples):
+        ray_indices, t_starts, t_ends = samples
+        points = rays_o[ray_indices] + rays_d[ray_indices] * (0.5 * (t_starts + t_ends))[:, None]
+        rgb = torch.sigmoid(points)  # any colour field
+        return composite_packed(rgb, density(points), t_starts, t_ends, ray_indices, 64, torch.ones(3))["rgb"]
+
+    torch.testing.assert_close(render(culled), render(everything), atol=2e-4, rtol=0)
+
+
+def test_a_grid_built_from_the_procedural_scenes_true_density_marks_its_surfaces_occupied():
+    grid = OccupancyGrid([-1.3, -1.3, -1.3, 1.3, 1.3, 1.3], resolution=48)
+    half_diagonal = math.sqrt(3) / 2 * 2.6 / 48
+
+    # a cell holds a surface point only if its centre is within half a cell diagonal of the surface
+    def density(points):
+        return 1e3 * (surface_distance(points) < half_diagonal).to(points.dtype)
+
+    grid.mark_from_density(density, step_size=0.01)
+    rays_o, rays_d = rays_towards_origin(4000, seed=6, spread=1.0)
+    t_hit = trace(rays_o, rays_d)["t"].float()
+    hit = torch.isfinite(t_hit)
+    assert hit.sum() > 2000
+    surface_points = rays_o[hit] + rays_d[hit] * t_hit[hit, None]
+    assert grid.occupied(surface_points).all()
+    # and what is far from every surface is empty: most of the box
+    centres = grid.cell_centres().reshape(-1, 3)
+    far_from_surfaces = surface_distance(centres) > 2 * half_diagonal
+    assert not grid.binary.reshape(-1)[far_from_surfaces].any()
+    assert grid.binary.float().mean() < 0.3
+
+
+def test_grid_refresh_schedule_warmup_then_ema():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8, update_every=4, warmup_steps=8, decay=0.5, threshold=0.01, seed=3)
+    calls = []
+
+    def constant(value):
+        def density(points):
+            calls.append(len(points))
+            return torch.full(points.shape[:1], value)
+        return density
+
+    assert not grid.update(3, constant(1.0), step_size=0.1)
+    assert grid.update(4, constant(1.0), step_size=0.1)
+    assert calls == [512]  # warmup: every cell
+    torch.testing.assert_close(grid.occupancy, torch.full((8, 8, 8), 0.1))
+    assert grid.binary.all()
+    grid.update(8, constant(0.0), step_size=0.1)  # after warmup: 128 random cells and 128 random occupied ones
+    assert calls[-1] == 256
+    halved = torch.isclose(grid.occupancy, torch.tensor(0.05))
+    assert (halved | torch.isclose(grid.occupancy, torch.tensor(0.1))).all() and 0 < halved.sum() <= 256  # refreshed cells halve (EMA), the others keep their estimate
+    again = OccupancyGrid(UNIT_BOX, resolution=8, update_every=4, warmup_steps=8, decay=0.5, seed=3)
+    again.update(4, constant(1.0), step_size=0.1)
+    again.update(8, constant(0.0), step_size=0.1)
+    assert torch.equal(again.occupancy, grid.occupancy)  # refreshes are seeded by step: a resumed run refreshes alike

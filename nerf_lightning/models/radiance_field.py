@@ -36,8 +36,9 @@ class RadianceFieldModule(FieldModule):
             ``n_samples`` points, and the grid is refreshed from ``field.density`` as training goes. Works with
             any field; not with a fine field.
         render_step_size: the marcher's step; None for (far - near) / n_samples, the stratified spacing.
-        alpha_threshold, early_stop_eps: the marcher drops samples less opaque than this and samples where the
-            transmittance is below that.
+        alpha_threshold, early_stop_eps, samples_per_round: see :func:`~nerf_lightning.rendering.renderer.render_rays_marched`:
+            a ray stops being evaluated once its transmittance is below ``early_stop_eps``, checked every
+            ``samples_per_round`` samples; ``alpha_threshold`` > 0 drops nearly transparent samples too.
     """
 
     kind = "radiance_field"
@@ -55,6 +56,7 @@ class RadianceFieldModule(FieldModule):
         render_step_size: float | None = None,
         alpha_threshold: float = 0.0,
         early_stop_eps: float = 1e-4,
+        samples_per_round: int = 16,
     ) -> None:
         super().__init__(optimizer, scheduler)
         if occupancy_grid is not None and fine_field is not None and n_fine_samples > 0:
@@ -66,6 +68,7 @@ class RadianceFieldModule(FieldModule):
         self.chunk_size = chunk_size
         self.occupancy_grid = occupancy_grid
         self.render_step_size, self.alpha_threshold, self.early_stop_eps = render_step_size, alpha_threshold, early_stop_eps
+        self.samples_per_round = samples_per_round
         self.near, self.far = 2.0, 6.0
         self.register_buffer("background", torch.ones(3))
 
@@ -85,7 +88,7 @@ class RadianceFieldModule(FieldModule):
         if self.occupancy_grid is not None:
             return render_rays_marched(
                 self.field, self.occupancy_grid, rays_o, rays_d, self.near, self.far, self.step_size, perturb, self.background,
-                self.alpha_threshold, self.early_stop_eps,
+                self.alpha_threshold, self.early_stop_eps, self.samples_per_round,
             )
         return render_rays(
             self.field, rays_o, rays_d, self.near, self.far, self.n_samples, perturb, self.background,

@@ -31,6 +31,7 @@ def composite_packed(
     ray_indices: torch.Tensor,
     n_rays: int,
     background: torch.Tensor | None = None,
+    transmittance_before: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Render N rays from M packed samples (the packed form of :func:`~nerf_lightning.rendering.volume.composite`).
 
@@ -38,6 +39,8 @@ def composite_packed(
         rgb: (M, 3) sample colours; density: (M,) >= 0; t_starts, t_ends: (M,) intervals;
         ray_indices: (M,) non-decreasing ray of each sample; n_rays: N;
         background: (3,) blended in by 1 - accumulation, None for black.
+        transmittance_before: (N,) the transmittance each ray arrives with (from samples composited earlier,
+            see :func:`~nerf_lightning.rendering.renderer.render_rays_marched`); None for 1.
 
     Returns:
         ``rgb`` (N, 3), ``depth`` (N,) (expected distance of the interval midpoints, given that the ray ends),
@@ -45,6 +48,8 @@ def composite_packed(
     """
     optical_depth = density * (t_ends - t_starts)
     transmittance = torch.exp(-exclusive_sum_packed(optical_depth, ray_indices, n_rays))
+    if transmittance_before is not None:
+        transmittance = transmittance_before[ray_indices] * transmittance
     weights = transmittance * (1.0 - torch.exp(-optical_depth))
     accumulation = rgb.new_zeros(n_rays).index_add(0, ray_indices, weights)
     colour = rgb.new_zeros(n_rays, 3).index_add(0, ray_indices, weights[:, None] * rgb)

@@ -69,21 +69,45 @@ def render_rays_marched(
     background: torch.Tensor | None = None,
     alpha_threshold: float = 0.0,
     early_stop_eps: float = 1e-4,
+    samples_per_round: int = 16,
     generator: torch.Generator | None = None,
 ) -> dict[str, torch.Tensor]:
     """Render (N, 3) rays with unit directions through the occupied cells of ``grid`` only (empty-space skipping).
 
-    ``field`` must have ``density(points)`` as well; see :func:`~nerf_lightning.rendering.occupancy.march_rays`
-    for the sampling. Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,) and ``n_samples`` (the
-    number of samples the field was evaluated at, a 0-d tensor).
+    The marcher (:func:`~nerf_lightning.rendering.occupancy.march_rays`) lists the steps in occupied cells;
+    the field is then evaluated in rounds, the next ``samples_per_round`` of each ray at a time, and a ray
+    leaves once its transmittance is below ``early_stop_eps``, so the samples behind an opaque surface are
+    never evaluated (on a CPU this is most of the saving; no extra density pass is needed). With
+    ``early_stop_eps=0`` the result equals compositing every listed sample. ``alpha_threshold`` > 0 also
+    drops nearly transparent steps, at the cost of a density pass (``field.density``) in the marcher.
+
+    Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,) and ``n_samples`` (how many samples the
+    field was evaluated at, a 0-d tensor).
     """
+    n_rays = rays_o.shape[0]
     ray_indices, t_starts, t_ends = march_rays(
         grid, rays_o, rays_d, near, far, step_size, perturb, generator,
-        density_fn=field.density, alpha_threshold=alpha_threshold, early_stop_eps=early_stop_eps,
+        density_fn=field.density if alpha_threshold > 0 else None, alpha_threshold=alpha_threshold,
     )
-    t_mid = 0.5 * (t_starts + t_ends)
-    points = rays_o[ray_indices] + rays_d[ray_indices] * t_mid[:, None]
-    out = field(points, rays_d[ray_indices])
-    result = composite_packed(out["rgb"], out["density"], t_starts, t_ends, ray_indices, rays_o.shape[0], background)
-    result["n_samples"] = torch.tensor(len(ray_indices))
-    return result
+    counts = torch.bincount(ray_indices, minlength=n_rays)
+    rank = torch.arange(len(ray_indices), device=rays_o.device) - (torch.cumsum(counts, 0) - counts)[ray_indices]  # (M,) within its ray
+    transmittance = rays_o.new_ones(n_rays)
+    colour, accumulation, depth_sum = rays_o.new_zeros(n_rays, 3), rays_o.new_zeros(n_rays), rays_o.new_zeros(n_rays)
+    evaluated = 0
+    for first in range(0, int(counts.max()) if len(counts) else 0, samples_per_round):
+        alive = transmittance.detach() >= early_stop_eps
+        chosen = (rank >= first) & (rank < first + samples_per_round) & alive[ray_indices]
+        if not chosen.any():
+            break
+        indices, starts, ends = ray_indices[chosen], t_starts[chosen], t_ends[chosen]
+        points = rays_o[indices] + rays_d[indices] * (0.5 * (starts + ends))[:, None]
+        out = field(points, rays_d[indices])
+        part = composite_packed(out["rgb"], out["density"], starts, ends, indices, n_rays, transmittance_before=transmittance)
+        colour, accumulation = colour + part["rgb"], accumulation + part["accumulation"]
+        depth_sum = depth_sum + part["depth"] * part["accumulation"]
+        transmittance = transmittance - part["accumulation"]
+        evaluated += len(indices)
+    if background is not None:
+        colour = colour + (1.0 - accumulation)[:, None] * background.to(colour)
+    depth = depth_sum / accumulation.clamp(min=1e-10)
+    return {"rgb": colour, "depth": depth, "accumulation": accumulation, "n_samples": torch.tensor(evaluated)}

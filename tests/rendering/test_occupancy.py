@@ -12,6 +12,7 @@ from nerf_lightning.rendering import (
     exclusive_sum_packed,
     march_rays,
     ray_aabb_intersect,
+    render_rays_marched,
 )
 
 UNIT_BOX = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
@@ -185,3 +186,37 @@ def test_grid_refresh_schedule_warmup_then_ema():
     again.update(4, constant(1.0), step_size=0.1)
     again.update(8, constant(0.0), step_size=0.1)
     assert torch.equal(again.occupancy, grid.occupancy)  # refreshes are seeded by step: a resumed run refreshes alike
+
+
+class BallField(torch.nn.Module):
+    """An opaque ball of radius 0.5 whose colour varies in space, with a learnable density scale."""
+
+    def __init__(self):
+        super().__init__()
+        self.scale = torch.nn.Parameter(torch.tensor(50.0))
+
+    def density(self, points):
+        return self.scale * (points.norm(dim=-1) < 0.5).to(points.dtype)
+
+    def forward(self, points, directions):
+        return {"rgb": torch.sigmoid(points + directions), "density": self.density(points)}
+
+
+def test_rendering_in_rounds_equals_compositing_every_marched_sample():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8)
+    field = BallField()
+    rays_o, rays_d = rays_towards_origin(64, seed=7, spread=0.2)  # most hit the ball
+    background = torch.tensor([1.0, 0.5, 0.0])
+    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False)
+    points = rays_o[ray_indices] + rays_d[ray_indices] * (0.5 * (t_starts + t_ends))[:, None]
+    out = field(points, rays_d[ray_indices])
+    everything = composite_packed(out["rgb"], out["density"], t_starts, t_ends, ray_indices, 64, background)
+    exact = render_rays_marched(field, grid, rays_o, rays_d, 2.0, 6.0, 0.02, False, background, early_stop_eps=0.0, samples_per_round=7)
+    assert exact["n_samples"] == len(ray_indices)
+    for key in ("rgb", "depth", "accumulation"):
+        torch.testing.assert_close(exact[key], everything[key])
+    stopped = render_rays_marched(field, grid, rays_o, rays_d, 2.0, 6.0, 0.02, False, background, early_stop_eps=1e-4, samples_per_round=7)
+    assert stopped["n_samples"] < 0.6 * len(ray_indices)  # the samples behind the ball are never evaluated
+    torch.testing.assert_close(stopped["rgb"], everything["rgb"], atol=2e-4, rtol=0)
+    stopped["rgb"].sum().backward()
+    assert field.scale.grad is not None and field.scale.grad != 0

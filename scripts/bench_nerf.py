@@ -25,6 +25,56 @@ from nerf_lightning.plots import plot_psnr_curves
 from nerf_lightning.train import train
 
 
+def train_preset(
+    preset: str,
+    run_dir: Path,
+    root: Path | None = None,
+    steps: int = 200_000,
+    max_minutes: float = 60.0,
+    val_every: int = 100,
+    val_views: int = 2,
+    target: float | None = None,
+    seed: int = 0,
+    resume: bool = False,
+    overrides: list[str] | tuple[str, ...] = (),
+) -> dict:
+    """Train ``experiment=<preset>`` into ``run_dir`` (see the module's docstring); returns the result dict."""
+    seconds_budget = round(max_minutes * 60)
+    max_time = f"{seconds_budget // 86400:02d}:{seconds_budget // 3600 % 24:02d}:{seconds_budget // 60 % 60:02d}:{seconds_budget % 60:02d}"
+    all_overrides = [
+        f"experiment={preset}", f"trainer.max_steps={steps}", f"data.val_every={val_every}",
+        f"data.val_views={val_views}", f"seed={seed}", f"paths.output_dir={run_dir}",
+        "trainer.enable_progress_bar=false", f"trainer.max_time='{max_time}'",
+        *overrides,
+    ]
+    if root is not None:
+        all_overrides.append(f"data.root={root.resolve()}")
+    if target is not None:
+        all_overrides.append(f"+callbacks.stop_at_target={{_target_: lightning.pytorch.callbacks.EarlyStopping, monitor: val/psnr, "
+                             f"mode: max, stopping_threshold: {target}, patience: 1000000, check_on_train_epoch_end: false}}")
+    if resume:
+        all_overrides.append(f"ckpt_path={run_dir / 'checkpoints' / 'last.ckpt'}")
+    cfg = compose_config(all_overrides)
+    started = time.perf_counter()
+    metrics = train(cfg)
+    wall = time.perf_counter() - started
+
+    history = json.loads((run_dir / "psnr_history.json").read_text())
+    step_list, seconds = history["train_step"], history["train_seconds"]
+    reached = next((t for t, p in zip(history["val_seconds"], history["val_psnr"]) if target and p >= target), None)
+    reached_step = next((s for s, p in zip(history["val_step"], history["val_psnr"]) if target and p >= target), None)
+    return {
+        "preset": preset, "root": str(root) if root else None, "overrides": all_overrides, "seed": seed,
+        "steps": metrics["step"], "final_val_psnr": metrics.get("val/psnr"), "final_val_ssim": metrics.get("val/ssim"),
+        "final_val_depth_error": metrics.get("val/depth_error"), "final_train_samples_per_ray": metrics.get("train/samples_per_ray"),
+        "training_seconds": seconds[-1] if seconds else None, "wall_seconds_with_validation": round(wall, 1),
+        "seconds_per_step": round((seconds[-1] - seconds[0]) / max(step_list[-1] - step_list[0], 1), 4) if len(step_list) > 1 else None,
+        "target_psnr": target, "target_reached_at_seconds": reached, "target_reached_at_step": reached_step,
+        "val_curve": [{"step": s, "seconds": t, "psnr": round(p, 3)} for s, t, p in zip(history["val_step"], history["val_seconds"], history["val_psnr"])],
+        "torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.machine(),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="nerf_procedural")
@@ -44,44 +94,14 @@ def main() -> None:
     if args.root is not None and not args.root.exists():
         print(json.dumps({"skipped": f"data not found: {args.root}"}))
         return
-    run_dir = args.run_dir or args.out.with_suffix("")
-    seconds_budget = round(args.max_minutes * 60)
-    max_time = f"{seconds_budget // 86400:02d}:{seconds_budget // 3600 % 24:02d}:{seconds_budget // 60 % 60:02d}:{seconds_budget % 60:02d}"
-    overrides = [
-        f"experiment={args.preset}", f"trainer.max_steps={args.steps}", f"data.val_every={args.val_every}",
-        f"data.val_views={args.val_views}", f"seed={args.seed}", f"paths.output_dir={run_dir}",
-        "trainer.enable_progress_bar=false", f"trainer.max_time='{max_time}'",
-        *args.overrides,
-    ]
-    if args.root is not None:
-        overrides.append(f"data.root={args.root.resolve()}")
-    if args.target is not None:
-        overrides.append(f"+callbacks.stop_at_target={{_target_: lightning.pytorch.callbacks.EarlyStopping, monitor: val/psnr, "
-                         f"mode: max, stopping_threshold: {args.target}, patience: 1000000, check_on_train_epoch_end: false}}")
-    if args.resume:
-        overrides.append(f"ckpt_path={run_dir / 'checkpoints' / 'last.ckpt'}")
-    cfg = compose_config(overrides)
-    started = time.perf_counter()
-    metrics = train(cfg)
-    wall = time.perf_counter() - started
-
-    history = json.loads((run_dir / "psnr_history.json").read_text())
-    steps, seconds = history["train_step"], history["train_seconds"]
-    reached = next((t for t, p in zip(history["val_seconds"], history["val_psnr"]) if args.target and p >= args.target), None)
-    reached_step = next((s for s, p in zip(history["val_step"], history["val_psnr"]) if args.target and p >= args.target), None)
-    result = {
-        "preset": args.preset, "root": str(args.root) if args.root else None, "overrides": overrides, "seed": args.seed,
-        "steps": metrics["step"], "final_val_psnr": metrics.get("val/psnr"), "final_val_ssim": metrics.get("val/ssim"),
-        "final_val_depth_error": metrics.get("val/depth_error"),
-        "training_seconds": seconds[-1] if seconds else None, "wall_seconds_with_validation": round(wall, 1),
-        "seconds_per_step": round((seconds[-1] - seconds[0]) / max(steps[-1] - steps[0], 1), 4) if len(steps) > 1 else None,
-        "target_psnr": args.target, "target_reached_at_seconds": reached, "target_reached_at_step": reached_step,
-        "val_curve": [{"step": s, "seconds": t, "psnr": round(p, 3)} for s, t, p in zip(history["val_step"], history["val_seconds"], history["val_psnr"])],
-        "torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.machine(),
-    }
+    result = train_preset(
+        args.preset, args.run_dir or args.out.with_suffix(""), args.root, args.steps, args.max_minutes, args.val_every,
+        args.val_views, args.target, args.seed, args.resume, args.overrides,
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
-    plot_psnr_curves({f"{args.preset} val": (history["val_seconds"], history["val_psnr"])}, args.out.with_suffix(".png"),
+    curve = result["val_curve"]
+    plot_psnr_curves({f"{args.preset} val": ([c["seconds"] for c in curve], [c["psnr"] for c in curve])}, args.out.with_suffix(".png"),
                      title=f"{args.preset}: validation PSNR against training time", xlabel="training seconds")
     print(json.dumps({k: v for k, v in result.items() if k not in ("val_curve", "overrides")}, indent=2))
 

@@ -110,4 +110,4 @@ def render_rays_marched(
     if background is not None:
         colour = colour + (1.0 - accumulation)[:, None] * background.to(colour)
     depth = depth_sum / accumulation.clamp(min=1e-10)
-    return {"rgb": colour, "depth": depth, "accumulation": accumulation, "n_samples": torch.tensor(evaluated)}
+    return {"rgb": colour, "depth": depth, "accumulation": accumulation, "n_samples": torch.tensor(evaluated, device=rays_o.device)}

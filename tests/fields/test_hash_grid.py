@@ -120,3 +120,14 @@ def test_hash_grid_field_outputs_and_is_empty_outside_its_box():
     assert field.encoding.table.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="aabb"):
         HashGridField(aabb=[1, 1, 1, -1, -1, -1])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_hash_grid_field_gives_the_same_result_on_cuda():
+    field = HashGridField(aabb=[-1, -1, -1, 1, 1, 1], n_levels=8, log2_table_size=14, max_resolution=256)
+    points = torch.rand(1000, 3) * 2 - 1
+    directions = torch.nn.functional.normalize(torch.randn(1000, 3), dim=-1)
+    on_cpu = field(points, directions)
+    on_cuda = field.cuda()(points.cuda(), directions.cuda())
+    for key in ("rgb", "density"):
+        torch.testing.assert_close(on_cuda[key].cpu(), on_cpu[key], atol=1e-4, rtol=1e-4)

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from nerf_lightning.data.formats.procedural import surface_distance, trace
@@ -220,3 +221,15 @@ def test_rendering_in_rounds_equals_compositing_every_marched_sample():
     torch.testing.assert_close(stopped["rgb"], everything["rgb"], atol=2e-4, rtol=0)
     stopped["rgb"].sum().backward()
     assert field.scale.grad is not None and field.scale.grad != 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_marching_and_rendering_give_the_same_result_on_cuda():
+    grid = random_grid(seed=8, fraction=0.5)
+    field = BallField()
+    rays_o, rays_d = rays_towards_origin(256, seed=9, spread=0.6)
+    on_cpu = render_rays_marched(field, grid, rays_o, rays_d, 2.0, 6.0, 0.02, False, torch.ones(3))
+    on_cuda = render_rays_marched(field.cuda(), grid.cuda(), rays_o.cuda(), rays_d.cuda(), 2.0, 6.0, 0.02, False, torch.ones(3, device="cuda"))
+    assert on_cuda["n_samples"].item() == on_cpu["n_samples"].item()
+    for key in ("rgb", "depth", "accumulation"):
+        torch.testing.assert_close(on_cuda[key].cpu(), on_cpu[key], atol=1e-4, rtol=1e-4)

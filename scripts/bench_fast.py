@@ -3,7 +3,7 @@
     .venv/bin/python scripts/bench_fast.py --root ../shared/data/nerf_synthetic/lego --minutes 10 \\
         --paper-curve docs/bench/nerf_lego_paper_1024.json --grid-minutes 45 --out docs/bench/fast_lego.json
 
-1. Trains ``experiment=fast_blender`` for ``--minutes`` of wall time (validation on ``--val-views`` views every
+1. Trains ``experiment=<--preset>`` (default ``fast_blender``) for ``--minutes`` of wall time (validation on ``--val-views`` views every
    ``--val-every`` steps; its time is left out of the training seconds), then, from the last checkpoint, on
    ``--eval-views`` evenly spaced views of the val split: PSNR and SSIM; seconds to render one frame; samples a ray
    three ways: what plain stepping at the marcher's step would evaluate inside near..far and the box, what the
@@ -81,6 +81,7 @@ def time_to(curve: list[dict], target: float) -> tuple[float | None, int | None]
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, required=True, help="a Blender scene folder (lego)")
+    parser.add_argument("--preset", default="fast_blender", help="the fast preset (fast_blender, fast_blender_tensorf)")
     parser.add_argument("--minutes", type=float, default=10.0, help="training wall time of the fast preset")
     parser.add_argument("--val-every", type=int, default=250)
     parser.add_argument("--val-views", type=int, default=1)
@@ -97,14 +98,14 @@ def main() -> None:
         print(json.dumps({"skipped": f"data not found: {args.root}"}))
         return
     runs = args.run_dir or Path("outputs") / "bench" / args.out.stem
-    fast = train_preset("fast_blender", runs / "fast", args.root, max_minutes=args.minutes, val_every=args.val_every,
+    fast = train_preset(args.preset, runs / "fast", args.root, max_minutes=args.minutes, val_every=args.val_every,
                         val_views=args.val_views, seed=args.seed, overrides=args.overrides)
     fast["steps_per_second"] = round(fast["steps"] / fast["training_seconds"], 3)
     fast["eval"] = evaluate_fast(runs / "fast" / "checkpoints" / "last.ckpt", args.root, args.eval_views)
     fast["training_rays_per_second"] = round(fast["eval"]["batch_size"] * fast["steps"] / fast["training_seconds"])
     result = {"fast": fast, "machine": platform.machine(), "threads": torch.get_num_threads(), "torch": torch.__version__}
 
-    curves = {"fast_blender (hash grid + occupancy grid)": fast["val_curve"]}
+    curves = {f"{args.preset} (grid encoding + occupancy grid)": fast["val_curve"]}
     if args.grid_minutes > 0:
         grid = train_preset("nerf_blender_grid", runs / "paper_grid", args.root, max_minutes=args.grid_minutes, val_every=args.val_every,
                             val_views=args.val_views, target=args.grid_target, seed=args.seed)
@@ -127,13 +128,13 @@ def main() -> None:
     plot_psnr_curves({name: ([p["seconds"] / 60 for p in curve], [p["psnr"] for p in curve]) for name, curve in curves.items()},
                      args.out.with_suffix(".png"), title=f"{args.root.name} 200x200, 2 CPU cores: validation PSNR", xlabel="training minutes")
     evaluation = fast["eval"]
-    row = (f"| {args.root.name} 200x200 | {fast['training_seconds'] / 60:.1f} min | {fast['steps']} | {evaluation['psnr']:.2f} dB "
+    row = (f"| {args.preset} | {args.root.name} 200x200 | {fast['training_seconds'] / 60:.1f} min | {fast['steps']} | {evaluation['psnr']:.2f} dB "
            f"({evaluation['eval_views']} val views) | {evaluation['ssim']:.3f} | {evaluation['samples_per_ray']['plain_stepping']:.0f} / "
            f"{evaluation['samples_per_ray']['occupied_cells']:.1f} / {evaluation['samples_per_ray']['evaluated']:.1f} | "
            f"{fast['training_rays_per_second']} | {evaluation['seconds_per_frame']:.2f} s |")
     args.out.with_suffix(".md").write_text(
-        "| scene | training time | steps | held-out PSNR | SSIM | samples a ray: plain / occupied / evaluated | training rays/s | one frame |\n"
-        "|---|---|---|---|---|---|---|---|\n" + row + "\n")
+        "| preset | scene | training time | steps | held-out PSNR | SSIM | samples a ray: plain / occupied / evaluated | training rays/s | one frame |\n"
+        "|---|---|---|---|---|---|---|---|---|\n" + row + "\n")
     print(row)
     print(json.dumps({k: v for k, v in result.items() if k not in ("fast", "paper_with_grid", "paper_without_grid")}, indent=2))
 

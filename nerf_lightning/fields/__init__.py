@@ -5,8 +5,10 @@ from nerf_lightning.fields.hash_grid import HashGridEncoding
 from nerf_lightning.fields.image_field import ImageField
 from nerf_lightning.fields.mlp import MLP
 from nerf_lightning.fields.nerf import NeRFField
-from nerf_lightning.fields.ngp import HashGridField
+from nerf_lightning.fields.ngp import GridField, HashGridField
+from nerf_lightning.fields.tensorf import TensorVMEncoding
 
 __all__ = [
-    "MLP", "HashGridEncoding", "HashGridField", "ImageField", "NeRFField", "SinusoidalEncoding", "SphericalHarmonicsEncoding",
+    "MLP", "GridField", "HashGridEncoding", "HashGridField", "ImageField", "NeRFField", "SinusoidalEncoding",
+    "SphericalHarmonicsEncoding", "TensorVMEncoding",
 ]

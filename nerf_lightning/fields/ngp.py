@@ -1,4 +1,4 @@
-"""A fast radiance field: a hash-grid encoding with two small MLPs (Instant-NGP's field)."""
+"""Fast radiance fields: a grid encoding (hash grid or factorised grid) with two small MLPs (Instant-NGP's field)."""
 
 from __future__ import annotations
 
@@ -31,30 +31,27 @@ def trunc_exp(x: torch.Tensor) -> torch.Tensor:
     return _TruncExp.apply(x)
 
 
-class HashGridField(nn.Module):
-    """Position -> hash-grid features -> density MLP -> density and a geometry feature; feature + direction -> colour.
+class GridField(nn.Module):
+    """Position -> grid encoding -> density MLP -> density and a geometry feature; feature + direction -> colour.
 
-    Points are normalised to the unit cube by ``aabb`` (xmin, ymin, zmin, xmax, ymax, zmax); outside it the
-    density is 0. Density goes through ``trunc_exp``; colour through a sigmoid.
+    Points are normalised to the unit cube by ``aabb`` (xmin, ymin, zmin, xmax, ymax, zmax) and encoded by
+    ``encoding`` (any module (..., 3) in [0, 1] -> (..., out_dim)); outside the box the density is 0. A
+    one-hidden-layer MLP gives the density (through ``trunc_exp``) and a geometry feature; a colour MLP of
+    ``colour_layers`` hidden layers takes that feature and the view direction's encoding to RGB (sigmoid).
 
     Args:
         aabb: the scene's bounding box, 6 numbers.
-        n_levels, features_per_level, log2_table_size, base_resolution, max_resolution: the hash grid's sizes
-            (see :class:`~nerf_lightning.fields.hash_grid.HashGridEncoding`).
+        encoding: the position encoding, with an ``out_dim``.
         hidden_width: width of both MLPs' hidden layers.
         geometry_features: width of the feature the density MLP hands the colour MLP.
-        colour_layers: hidden layers of the colour MLP (the density MLP has one).
+        colour_layers: hidden layers of the colour MLP.
         direction_encoding: ``sh`` (spherical harmonics, 16 features) or ``sinusoidal`` (L = 4, 27 features).
     """
 
     def __init__(
         self,
         aabb: Sequence[float],
-        n_levels: int = 16,
-        features_per_level: int = 2,
-        log2_table_size: int = 19,
-        base_resolution: int = 16,
-        max_resolution: int = 2048,
+        encoding: nn.Module,
         hidden_width: int = 64,
         geometry_features: int = 15,
         colour_layers: int = 2,
@@ -63,16 +60,16 @@ class HashGridField(nn.Module):
         super().__init__()
         aabb = torch.as_tensor(list(aabb), dtype=torch.float32)
         if aabb.shape != (6,) or not bool((aabb[3:] > aabb[:3]).all()):
-            raise ValueError(f"HashGridField: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {aabb.tolist()}")
+            raise ValueError(f"{type(self).__name__}: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {aabb.tolist()}")
         self.register_buffer("aabb", aabb)
-        self.encoding = HashGridEncoding(n_levels, features_per_level, log2_table_size, base_resolution, max_resolution)
-        self.density_mlp = MLP(self.encoding.out_dim, hidden_width, 1, 1 + geometry_features)
+        self.encoding = encoding
+        self.density_mlp = MLP(encoding.out_dim, hidden_width, 1, 1 + geometry_features)
         if direction_encoding == "sh":
             self.direction_encoding: nn.Module = SphericalHarmonicsEncoding(4)
         elif direction_encoding == "sinusoidal":
             self.direction_encoding = SinusoidalEncoding(3, 4)
         else:
-            raise ValueError(f"HashGridField: direction_encoding must be sh or sinusoidal, got '{direction_encoding}'")
+            raise ValueError(f"{type(self).__name__}: direction_encoding must be sh or sinusoidal, got '{direction_encoding}'")
         self.colour_mlp = MLP(geometry_features + self.direction_encoding.out_dim, hidden_width, colour_layers, 3)
 
     def density_and_feature(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -92,3 +89,27 @@ class HashGridField(nn.Module):
         density, feature = self.density_and_feature(points)
         rgb = torch.sigmoid(self.colour_mlp(torch.cat([feature, self.direction_encoding(directions)], dim=-1)))
         return {"rgb": rgb, "density": density}
+
+
+class HashGridField(GridField):
+    """Instant-NGP's field: a :class:`GridField` on a multiresolution hash encoding.
+
+    ``n_levels``, ``features_per_level``, ``log2_table_size``, ``base_resolution``, ``max_resolution``: the hash
+    grid's sizes (see :class:`~nerf_lightning.fields.hash_grid.HashGridEncoding`); the rest as in :class:`GridField`.
+    """
+
+    def __init__(
+        self,
+        aabb: Sequence[float],
+        n_levels: int = 16,
+        features_per_level: int = 2,
+        log2_table_size: int = 19,
+        base_resolution: int = 16,
+        max_resolution: int = 2048,
+        hidden_width: int = 64,
+        geometry_features: int = 15,
+        colour_layers: int = 2,
+        direction_encoding: str = "sh",
+    ) -> None:
+        encoding = HashGridEncoding(n_levels, features_per_level, log2_table_size, base_resolution, max_resolution)
+        super().__init__(aabb, encoding, hidden_width, geometry_features, colour_layers, direction_encoding)

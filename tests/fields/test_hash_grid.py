@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from nerf_lightning.fields import HashGridEncoding, HashGridField, SphericalHarmonicsEncoding
+from nerf_lightning.fields import GridField, HashGridEncoding, HashGridField, SphericalHarmonicsEncoding, TensorVMEncoding
 from nerf_lightning.fields.hash_grid import level_resolutions
 
 
@@ -131,3 +131,20 @@ def test_hash_grid_field_gives_the_same_result_on_cuda():
     on_cuda = field.cuda()(points.cuda(), directions.cuda())
     for key in ("rgb", "density"):
         torch.testing.assert_close(on_cuda[key].cpu(), on_cpu[key], atol=1e-4, rtol=1e-4)
+
+
+def test_factorised_grid_encoding_interpolates_its_factors():
+    encoding = TensorVMEncoding(resolution=5, components=2)
+    # at a grid vertex the feature of axis x, component c is plane[0, c, row(z), column(y)] * line[0, c, row(x)]
+    point = torch.tensor([[0.25, 0.5, 1.0]])  # vertices x = 1, y = 2, z = 4 of 0..4
+    got = encoding(point)[0]
+    expected_x = encoding.planes[0, :, 4, 2] * encoding.lines[0, :, 1, 0]
+    expected_z = encoding.planes[2, :, 2, 1] * encoding.lines[2, :, 4, 0]
+    torch.testing.assert_close(got[:2], expected_x)
+    torch.testing.assert_close(got[4:], expected_z)
+    # linear along a line between vertices (the plane factor fixed): halfway gives the mean
+    a, b = encoding(torch.tensor([[0.0, 0.5, 0.5]])), encoding(torch.tensor([[0.25, 0.5, 0.5]]))
+    torch.testing.assert_close(encoding(torch.tensor([[0.125, 0.5, 0.5]]))[0, :2], (a + b)[0, :2] / 2)
+    encoding(torch.rand(10, 3)).sum().backward()
+    assert encoding.planes.grad.abs().sum() > 0 and encoding.lines.grad.abs().sum() > 0
+    assert GridField([-1, -1, -1, 1, 1, 1], encoding)(torch.zeros(4, 3), torch.eye(3)[[0, 1, 2, 0]])["rgb"].shape == (4, 3)

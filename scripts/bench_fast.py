@@ -13,6 +13,9 @@
    the grid, read from ``--paper-curve`` (a ``scripts/bench_nerf.py`` JSON of the same recipe on the same machine).
 3. One plot of validation PSNR against training minutes for all of them, beside the JSON.
 
+``--report-only`` trains nothing and redoes step 3 and the comparison from an existing ``--out`` (after the
+no-grid run in ``--paper-curve`` has gone further, for example).
+
 Exits 0 with "skipped" when --root is missing.
 """
 
@@ -83,6 +86,7 @@ def main() -> None:
     parser.add_argument("--root", type=Path, required=True, help="a Blender scene folder (lego)")
     parser.add_argument("--preset", default="fast_blender", help="the fast preset (fast_blender, fast_blender_tensorf)")
     parser.add_argument("--minutes", type=float, default=10.0, help="training wall time of the fast preset")
+    parser.add_argument("--steps", type=int, default=None, help="trainer.max_steps (the lr decays over them); default: the preset's")
     parser.add_argument("--val-every", type=int, default=250)
     parser.add_argument("--val-views", type=int, default=1)
     parser.add_argument("--eval-views", type=int, default=20)
@@ -92,29 +96,35 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--run-dir", type=Path, default=None, help="where the runs go (default: outputs/bench/<out's name>)")
+    parser.add_argument("--report-only", action="store_true", help="train nothing: redo the comparison, plot and row from --out")
     parser.add_argument("overrides", nargs="*", help="more Hydra overrides for the fast preset, after --")
     args = parser.parse_args()
     if not args.root.exists():
         print(json.dumps({"skipped": f"data not found: {args.root}"}))
         return
-    runs = args.run_dir or Path("outputs") / "bench" / args.out.stem
-    fast = train_preset(args.preset, runs / "fast", args.root, max_minutes=args.minutes, val_every=args.val_every,
-                        val_views=args.val_views, seed=args.seed, overrides=args.overrides)
-    fast["steps_per_second"] = round(fast["steps"] / fast["training_seconds"], 3)
-    fast["eval"] = evaluate_fast(runs / "fast" / "checkpoints" / "last.ckpt", args.root, args.eval_views)
-    fast["training_rays_per_second"] = round(fast["eval"]["batch_size"] * fast["steps"] / fast["training_seconds"])
-    result = {"fast": fast, "machine": platform.machine(), "threads": torch.get_num_threads(), "torch": torch.__version__}
+    if args.report_only:
+        result = json.loads(args.out.read_text())
+    else:
+        runs = args.run_dir or Path("outputs") / "bench" / args.out.stem
+        fast = train_preset(args.preset, runs / "fast", args.root, steps=args.steps, max_minutes=args.minutes, val_every=args.val_every,
+                            val_views=args.val_views, seed=args.seed, overrides=args.overrides)
+        fast["steps_per_second"] = round(fast["steps"] / fast["training_seconds"], 3)
+        fast["eval"] = evaluate_fast(runs / "fast" / "checkpoints" / "last.ckpt", args.root, args.eval_views)
+        fast["training_rays_per_second"] = round(fast["eval"]["batch_size"] * fast["steps"] / fast["training_seconds"])
+        result = {"fast": fast, "machine": platform.machine(), "threads": torch.get_num_threads(), "torch": torch.__version__}
+        if args.grid_minutes > 0:
+            result["paper_with_grid"] = train_preset(
+                "nerf_blender_grid", runs / "paper_grid", args.root, max_minutes=args.grid_minutes, val_every=args.val_every,
+                val_views=args.val_views, target=args.grid_target, seed=args.seed,
+            )
+    report(result, args)
 
-    curves = {f"{args.preset} (grid encoding + occupancy grid)": fast["val_curve"]}
-    if args.grid_minutes > 0:
-        grid = train_preset("nerf_blender_grid", runs / "paper_grid", args.root, max_minutes=args.grid_minutes, val_every=args.val_every,
-                            val_views=args.val_views, target=args.grid_target, seed=args.seed)
-        result["paper_with_grid"] = grid
-        curves["paper MLP + occupancy grid"] = grid["val_curve"]
+
+def report(result: dict, args: argparse.Namespace) -> None:
+    """Add the no-grid curve and the time-to-target comparison; write the JSON, the plot and the markdown row."""
     if args.paper_curve is not None and args.paper_curve.exists():
         paper = json.loads(args.paper_curve.read_text())
         result["paper_without_grid"] = {key: paper[key] for key in ("overrides", "steps", "final_val_psnr", "training_seconds", "seconds_per_step", "val_curve")}
-        curves["paper MLP, no grid"] = paper["val_curve"]
     comparison = {}
     for name, key in (("with_grid", "paper_with_grid"), ("without_grid", "paper_without_grid")):
         if key in result:
@@ -122,13 +132,19 @@ def main() -> None:
             comparison[name] = {"seconds": seconds, "step": step, "seconds_per_step": result[key]["seconds_per_step"]}
     if comparison:
         result[f"paper_time_to_{args.grid_target:g}_db"] = comparison
-
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
+
+    fast, preset = result["fast"], result["fast"]["preset"]
+    curves = {f"{preset} (grid encoding + occupancy grid)": fast["val_curve"]}
+    if "paper_with_grid" in result:
+        curves["paper MLP + occupancy grid"] = result["paper_with_grid"]["val_curve"]
+    if "paper_without_grid" in result:
+        curves["paper MLP, no grid"] = result["paper_without_grid"]["val_curve"]
     plot_psnr_curves({name: ([p["seconds"] / 60 for p in curve], [p["psnr"] for p in curve]) for name, curve in curves.items()},
                      args.out.with_suffix(".png"), title=f"{args.root.name} 200x200, 2 CPU cores: validation PSNR", xlabel="training minutes")
     evaluation = fast["eval"]
-    row = (f"| {args.preset} | {args.root.name} 200x200 | {fast['training_seconds'] / 60:.1f} min | {fast['steps']} | {evaluation['psnr']:.2f} dB "
+    row = (f"| {preset} | {args.root.name} 200x200 | {fast['training_seconds'] / 60:.1f} min | {fast['steps']} | {evaluation['psnr']:.2f} dB "
            f"({evaluation['eval_views']} val views) | {evaluation['ssim']:.3f} | {evaluation['samples_per_ray']['plain_stepping']:.0f} / "
            f"{evaluation['samples_per_ray']['occupied_cells']:.1f} / {evaluation['samples_per_ray']['evaluated']:.1f} | "
            f"{fast['training_rays_per_second']} | {evaluation['seconds_per_frame']:.2f} s |")

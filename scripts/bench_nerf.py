@@ -29,7 +29,7 @@ def train_preset(
     preset: str,
     run_dir: Path,
     root: Path | None = None,
-    steps: int = 200_000,
+    steps: int | None = 200_000,
     max_minutes: float = 60.0,
     val_every: int = 100,
     val_views: int = 2,
@@ -38,11 +38,13 @@ def train_preset(
     resume: bool = False,
     overrides: list[str] | tuple[str, ...] = (),
 ) -> dict:
-    """Train ``experiment=<preset>`` into ``run_dir`` (see the module's docstring); returns the result dict."""
+    """Train ``experiment=<preset>`` into ``run_dir`` (see the module's docstring); returns the result dict.
+
+    ``steps`` None keeps the preset's ``trainer.max_steps`` (and so its learning-rate schedule)."""
     seconds_budget = round(max_minutes * 60)
     max_time = f"{seconds_budget // 86400:02d}:{seconds_budget // 3600 % 24:02d}:{seconds_budget // 60 % 60:02d}:{seconds_budget % 60:02d}"
     all_overrides = [
-        f"experiment={preset}", f"trainer.max_steps={steps}", f"data.val_every={val_every}",
+        f"experiment={preset}", *([f"trainer.max_steps={steps}"] if steps else []), f"data.val_every={val_every}",
         f"data.val_views={val_views}", f"seed={seed}", f"paths.output_dir={run_dir}",
         "trainer.enable_progress_bar=false", f"trainer.max_time='{max_time}'",
         *overrides,

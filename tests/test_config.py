@@ -50,3 +50,21 @@ def test_the_paper_model_is_the_default_nerf():
     field = cfg.model.field
     assert (field.position_frequencies, field.direction_frequencies, field.hidden_width, field.hidden_layers, field.skip_layer, field.view_width) == (10, 4, 256, 8, 4, 128)
     assert cfg.model.fine_field == field and (cfg.model.n_samples, cfg.model.n_fine_samples) == (64, 128)
+
+
+def test_fast_presets_build_their_fields_and_one_box_for_field_and_grid():
+    from hydra.utils import instantiate
+
+    from nerf_lightning.fields import GridField, HashGridField, NeRFField, TensorVMEncoding
+
+    for preset, field_type, box in (("fast", HashGridField, 1.3), ("fast_blender", HashGridField, 1.5),
+                                    ("fast_blender_tensorf", GridField, 1.5), ("nerf_blender_grid", NeRFField, 1.5)):
+        cfg = compose_config([f"experiment={preset}", "paths.output_dir=/tmp/x", *(["data.root=lego"] if preset != "fast" else [])])
+        model = instantiate(cfg.model)
+        assert type(model.field) is field_type and model.fine_field is None
+        assert model.occupancy_grid.aabb.tolist() == pytest.approx([-box] * 3 + [box] * 3)
+        if hasattr(model.field, "aabb"):
+            assert model.field.aabb.tolist() == model.occupancy_grid.aabb.tolist()
+    assert isinstance(model.field, NeRFField) and model.step_size == (6.0 - 2.0) / 64  # the paper MLP: the stratified spacing
+    tensorf = instantiate(compose_config(["experiment=fast_blender_tensorf", "data.root=lego", "paths.output_dir=/tmp/x"]).model)
+    assert isinstance(tensorf.field.encoding, TensorVMEncoding)

@@ -93,12 +93,16 @@ class RayDataModule(StepBatchesDataModule):
 
     def render_views(self, path: str | None = None, n_frames: int | None = None) -> Views:
         """Cameras of a render path (no images): ``test`` (the scene's render split, else its test split),
-        ``orbit`` or ``spiral`` (``n_frames`` frames around where the training cameras look)."""
+        ``orbit`` or ``spiral`` (the scene's own path of that name, as LLFF's spiral, else ``n_frames`` frames
+        around where the training cameras look)."""
         path = path or self.render_path
         n_frames = n_frames or self.render_frames
         train = self.scene.train
-        if path == "test":
-            views = self.scene.splits.get("render") or self.scene.held_out("test")
+        if path == "test" or path in self.scene.splits:
+            if path == "test":
+                views = self.scene.splits.get("render") or self.scene.held_out("test")
+            else:
+                views = self.scene.splits[path]
             return Views(K=views.K, c2w=views.c2w, height=views.height, width=views.width, names=views.names)
         make = {"orbit": orbit_path, "spiral": spiral_path}.get(path)
         if make is None:

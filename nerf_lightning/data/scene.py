@@ -68,6 +68,9 @@ class Scene:
         near, far: the range along unit rays where the scene lies.
         background: (3,) RGB the images were composited onto, and that rendering blends in.
         source: where it was loaded from, for messages.
+        world_from_capture: (4, 4) similarity from the file's coordinates to the scene's (where a loader
+            normalised them), to map renders and meshes back; None for the identity.
+        aabb_scale: instant-ngp's ``aabb_scale`` of the capture (how far beyond the unit box the scene reaches), if given.
     """
 
     splits: dict[str, Views]
@@ -75,6 +78,8 @@ class Scene:
     far: float
     background: torch.Tensor = field(default_factory=lambda: torch.ones(3))
     source: str = ""
+    world_from_capture: torch.Tensor | None = None
+    aabb_scale: float | None = None
 
     def __post_init__(self) -> None:
         if "train" not in self.splits or len(self.splits["train"]) == 0:

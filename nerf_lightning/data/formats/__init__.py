@@ -1,7 +1,9 @@
 """Loaders of file formats into a :class:`~nerf_lightning.data.scene.Scene`."""
 
 from nerf_lightning.data.formats.blender import load_blender
+from nerf_lightning.data.formats.llff import load_llff
 from nerf_lightning.data.formats.npz import load_npz, save_npz
 from nerf_lightning.data.formats.procedural import load_procedural, make_procedural_scene
+from nerf_lightning.data.formats.transforms import load_transforms
 
-__all__ = ["load_blender", "load_npz", "load_procedural", "make_procedural_scene", "save_npz"]
+__all__ = ["load_blender", "load_llff", "load_npz", "load_procedural", "load_transforms", "make_procedural_scene", "save_npz"]

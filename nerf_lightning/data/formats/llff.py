@@ -1,0 +1,171 @@
+"""LLFF forward-facing captures (NeRF's ``nerf_llff_data`` layout).
+
+``poses_bounds.npy`` is (N, 17): per view a 3x5 matrix, flattened row by row, whose first three columns are the
+camera-to-world rotation with the axes [down, right, back], the fourth the camera centre and the fifth
+[H, W, focal] of the full-size images, then the near and far depth bounds of the view's scene points. Images are
+in ``images/`` (full size) or ``images_<k>/`` (downscaled k times), sorted by name, one per row.
+
+As in the NeRF code (``load_llff.py``): the axes become [right, up, back] (OpenGL), the scene is scaled so that the
+nearest bound is 1 / ``bd_factor``, and recentred on the average camera (its position the mean centre, its back
+axis the mean back axis), so the cameras look down -z of the world. Views are then converted to this project's
+OpenCV cameras. The ``spiral`` split (what ``render.path=spiral`` renders) is NeRF's spiral: ``n_frames`` cameras on two turns of an ellipse around the
+average camera, looking at the focus depth, with radii the 90th percentile of the camera offsets.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nerf_lightning.data.images import load_image
+from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _view_matrix(back: np.ndarray, up: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(3, 4) OpenGL camera-to-world with the given back axis, approximately the given up, at ``centre``."""
+    z = _normalize(back)
+    x = _normalize(np.cross(up, z))
+    y = np.cross(z, x)
+    return np.stack([x, y, z, centre], axis=1)
+
+
+def average_pose(c2w: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) OpenGL cameras -> (3, 4) their average: mean centre, mean back axis, mean up."""
+    return _view_matrix(c2w[:, :3, 2].sum(0), c2w[:, :3, 1].sum(0), c2w[:, :3, 3].mean(0))
+
+
+def llff_spiral(c2w: np.ndarray, bounds: np.ndarray, n_frames: int = 120, turns: int = 2, z_rate: float = 0.5) -> np.ndarray:
+    """NeRF's ``render_path_spiral`` for (N, 3, 4) recentred OpenGL cameras: (n_frames, 3, 4) OpenGL cameras."""
+    average = average_pose(c2w)
+    up = _normalize(c2w[:, :3, 1].sum(0))
+    close_depth, infinity_depth = bounds.min() * 0.9, bounds.max() * 5.0
+    weight = 0.75
+    focus = 1.0 / ((1.0 - weight) / close_depth + weight / infinity_depth)
+    radii = np.percentile(np.abs(c2w[:, :3, 3]), 90, axis=0)
+    frames = []
+    for theta in np.linspace(0.0, 2.0 * math.pi * turns, n_frames + 1)[:-1]:
+        centre = average[:, :3] @ (np.array([math.cos(theta), -math.sin(theta), -math.sin(theta * z_rate)]) * radii) + average[:, 3]
+        look_at = average[:, :3] @ np.array([0.0, 0.0, -focus]) + average[:, 3]
+        frames.append(_view_matrix(centre - look_at, up, centre))
+    return np.stack(frames)
+
+
+def _homogeneous(c2w: np.ndarray) -> np.ndarray:
+    bottom = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), (*c2w.shape[:-2], 1, 4))
+    return np.concatenate([c2w, bottom], axis=-2)
+
+
+def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``poses_bounds.npy`` -> (N, 3, 4) OpenGL camera-to-world, (N, 3) [H, W, focal], (N, 2) near/far bounds."""
+    if not path.is_file():
+        raise FileNotFoundError(f"LLFF poses not found: {path}")
+    try:
+        array = np.load(path)
+    except Exception as error:
+        raise ValueError(f"could not read {path}: {error}") from error
+    if array.ndim != 2 or array.shape[1] != 17 or array.shape[0] == 0:
+        raise ValueError(f"{path}: expected an (N, 17) array (a 3x5 pose and 2 bounds a view), got shape {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"{path}: view {int(np.nonzero(~np.isfinite(array).all(1))[0][0])} has non-finite values")
+    poses = array[:, :15].reshape(-1, 3, 5).astype(np.float64)
+    bounds = array[:, 15:].astype(np.float64)
+    # [down, right, back] -> [right, up, back]
+    c2w = np.concatenate([poses[:, :, 1:2], -poses[:, :, 0:1], poses[:, :, 2:4]], axis=2)
+    return c2w, poses[:, :, 4], bounds
+
+
+def write_poses_bounds(path: str | Path, c2w_opencv: torch.Tensor, height: int, width: int, focal: float, bounds: np.ndarray) -> Path:
+    """Write (N, 4, 4) OpenCV cameras with their [H, W, focal] and (N, 2) bounds as ``poses_bounds.npy``."""
+    c2w = c2w_opencv.double().numpy()
+    # OpenCV [right, down, forward] -> LLFF [down, right, back]
+    rotation = np.stack([c2w[:, :3, 1], c2w[:, :3, 0], -c2w[:, :3, 2]], axis=2)
+    hwf = np.broadcast_to(np.array([height, width, focal], dtype=np.float64)[None, :, None], (len(c2w), 3, 1))
+    poses = np.concatenate([rotation, c2w[:, :3, 3:4], hwf], axis=2)
+    path = Path(path)
+    np.save(path, np.concatenate([poses.reshape(-1, 15), np.asarray(bounds, dtype=np.float64)], axis=1))
+    return path
+
+
+def load_llff(
+    root: str | Path,
+    downscale: int = 8,
+    holdout_every: int = 8,
+    bd_factor: float | None = 0.75,
+    recentre: bool = True,
+    near: float | None = None,
+    far: float | None = None,
+    render_frames: int = 120,
+    max_views: int | None = None,
+) -> Scene:
+    """An LLFF capture.
+
+    Args:
+        root: the folder with ``poses_bounds.npy`` and ``images[_k]/``.
+        downscale: k of the ``images_<k>`` folder to read (1 reads ``images/``); sizes and the focal length are
+            scaled from the npy's full-size [H, W, focal] by the images' actual size.
+        holdout_every: every k-th view (0, k, 2k, ...) is held out as val and test (NeRF's ``llffhold`` = 8).
+        bd_factor: scale the scene so that the nearest bound is 1 / bd_factor (None: no scaling).
+        recentre: move the world to the average camera.
+        near, far: the sampling range; by default 0.9 x the smallest bound and the largest bound.
+        render_frames: frames of the ``spiral`` split.
+        max_views: keep at most this many training views, evenly spaced.
+    """
+    root = Path(root).expanduser()
+    if not root.is_dir():
+        raise FileNotFoundError(f"LLFF scene folder not found: {root}")
+    c2w, hwf, bounds = read_poses_bounds(root / "poses_bounds.npy")
+    folder = root / ("images" if downscale == 1 else f"images_{downscale}")
+    if not folder.is_dir():
+        available = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("images"))
+        raise FileNotFoundError(f"{folder} not found: data.scene.downscale={downscale} reads it; {root} has {available or 'no image folders'}")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(files) != len(c2w):
+        raise ValueError(f"{folder} has {len(files)} images but {root / 'poses_bounds.npy'} has {len(c2w)} poses: expected one image a pose")
+    images = [load_image(path) for path in files]
+    height, width = images[0].shape[:2]
+    for path, image in zip(files, images):
+        if image.shape != images[0].shape:
+            raise ValueError(f"{path} is {image.shape[1]}x{image.shape[0]} but {files[0].name} is {width}x{height}: all images must have one size")
+    full_height, full_width, full_focal = hwf[0]
+    scale_x, scale_y = full_width / width, full_height / height
+    if abs(scale_x - scale_y) > 0.02 * scale_x:
+        raise ValueError(f"{folder}: images of {width}x{height} are not a uniform downscale of the poses' {full_width:.0f}x{full_height:.0f}")
+    focal = full_focal / scale_x
+
+    if bd_factor is not None:
+        scale = 1.0 / (bounds.min() * bd_factor)
+        c2w[:, :3, 3] *= scale
+        bounds = bounds * scale
+    if recentre:
+        c2w = (np.linalg.inv(_homogeneous(average_pose(c2w))) @ _homogeneous(c2w))[:, :3]
+    spiral = llff_spiral(c2w, bounds, render_frames)
+
+    def to_opencv(matrices: np.ndarray, source: str) -> torch.Tensor:
+        return opengl_to_opencv(validate_c2w(torch.from_numpy(_homogeneous(matrices)), source)).float()
+
+    cameras = to_opencv(c2w, f"{root / 'poses_bounds.npy'}")
+    count = len(cameras)
+    K = torch.tensor([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
+    views = Views(K=K.expand(count, 3, 3).clone(), c2w=cameras, height=height, width=width, images=torch.stack(images),
+                  names=[path.name for path in files])
+    held = list(range(0, count, holdout_every)) if holdout_every else []
+    train = [i for i in range(count) if i not in held]
+    if max_views:
+        train = [train[i] for i in evenly_spaced(len(train), max_views)]
+    splits = {"train": views.subset(train)}
+    if held:
+        splits["val"] = splits["test"] = views.subset(held)
+    splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
+    near = float(bounds.min() * 0.9) if near is None else near
+    far = float(bounds.max()) if far is None else far
+    return Scene(splits=splits, near=near, far=far, background=torch.zeros(3), source=str(root))

@@ -1,0 +1,191 @@
+"""COLMAP-posed captures in instant-ngp's / nerfstudio's ``transforms.json``.
+
+Intrinsics are global keys, overridable per frame: ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h`` (or
+``camera_angle_x`` / ``camera_angle_y`` for the focal lengths, and the image's size for the rest), and OpenCV
+distortion ``k1``, ``k2``, ``p1``, ``p2`` (``k3`` too). Each frame has ``file_path`` (relative to the json's folder)
+and ``transform_matrix`` (OpenGL camera-to-world, as in the Blender scenes). Frames whose image is missing are
+skipped with one warning naming them. Images with distortion are undistorted with kornia onto the same pinhole K.
+
+The world is normalised as nerfstudio's ``auto_orient_and_center_poses`` (method ``up``) and scale do: centred on
+the mean camera centre, rotated so that the mean camera up is +z, scaled so that the farthest camera centre
+coordinate is 1. That 4x4 similarity is kept as ``scene.world_from_capture``, so renders and meshes can be mapped
+back to the capture's coordinates; ``aabb_scale`` is kept as ``scene.aabb_scale``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import kornia
+import numpy as np
+import torch
+
+from nerf_lightning.data.images import downscale as downscale_image
+from nerf_lightning.data.images import load_image
+from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
+
+log = logging.getLogger(__name__)
+
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+def _number(frame: dict, meta: dict, key: str, path: Path, where: str) -> float | None:
+    value = frame.get(key, meta.get(key))
+    if value is None:
+        return None
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: {where}'{key}' must be a number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{path}: {where}'{key}' is not finite ({value})")
+    return value
+
+
+def frame_intrinsics(frame: dict, meta: dict, width: int, height: int, path: Path, where: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """K (3, 3) and OpenCV distortion (5,) of one frame of a ``width`` x ``height`` image, per-frame keys first."""
+    def get(key: str) -> float | None:
+        return _number(frame, meta, key, path, where)
+
+    for key, actual in (("w", width), ("h", height)):
+        declared = get(key)
+        if declared is not None and round(declared) != actual:
+            raise ValueError(f"{path}: {where}'{key}' is {declared:g} but the image is {width}x{height}")
+    fl_x, fl_y = get("fl_x"), get("fl_y")
+    angle_x, angle_y = get("camera_angle_x"), get("camera_angle_y")
+    if fl_x is None and angle_x is not None:
+        fl_x = 0.5 * width / math.tan(0.5 * angle_x)
+    if fl_y is None and angle_y is not None:
+        fl_y = 0.5 * height / math.tan(0.5 * angle_y)
+    if fl_x is None and fl_y is None:
+        raise ValueError(f"{path}: {where}no focal length: expected 'fl_x'/'fl_y' or 'camera_angle_x'/'camera_angle_y'")
+    fl_x, fl_y = fl_x or fl_y, fl_y or fl_x
+    cx, cy = get("cx"), get("cy")
+    K = torch.tensor([[fl_x, 0.0, width / 2.0 if cx is None else cx], [0.0, fl_y, height / 2.0 if cy is None else cy], [0.0, 0.0, 1.0]])
+    distortion = torch.tensor([get(key) or 0.0 for key in DISTORTION_KEYS])
+    return K, distortion
+
+
+def undistort(image: torch.Tensor, K: torch.Tensor, distortion: torch.Tensor) -> torch.Tensor:
+    """(H, W, 3) image through a lens with OpenCV ``distortion`` (k1, k2, p1, p2, k3) -> the pinhole image of the same K."""
+    if not distortion.any():
+        return image
+    return kornia.geometry.calibration.undistort_image(image.permute(2, 0, 1)[None], K[None], distortion[None])[0].permute(1, 2, 0)
+
+
+def normalising_transform(c2w: torch.Tensor) -> torch.Tensor:
+    """(N, 4, 4) OpenGL cameras -> (4, 4) similarity: centre on the mean camera, mean up to +z, farthest coordinate 1."""
+    c2w = c2w.double()
+    centre = c2w[:, :3, 3].mean(0)
+    up = torch.nn.functional.normalize(c2w[:, :3, 1].mean(0), dim=0)
+    # the rotation taking ``up`` to +z (Rodrigues), as nerfstudio's rotation_matrix(up, [0, 0, 1])
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    axis, cosine = torch.linalg.cross(up, z), float(up @ z)
+    if cosine < -1.0 + 1e-9:
+        rotation = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    else:
+        skew = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]], dtype=torch.float64)
+        rotation = torch.eye(3, dtype=torch.float64) + skew + skew @ skew / (1.0 + cosine)
+    transform = torch.eye(4, dtype=torch.float64)
+    transform[:3, :3], transform[:3, 3] = rotation, -rotation @ centre
+    scale = 1.0 / float((transform[:3, :3] @ c2w[:, :3, 3].T + transform[:3, 3:]).abs().max())
+    return torch.diag(torch.tensor([scale, scale, scale, 1.0], dtype=torch.float64)) @ transform
+
+
+def apply_similarity(transform: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
+    """A (4, 4) similarity applied to (N, 4, 4) cameras, their rotations kept orthonormal."""
+    scale = transform[:3, :3].det().abs() ** (1.0 / 3.0)
+    out = c2w.double().clone()
+    out[:, :3, :3] = (transform[:3, :3] / scale) @ c2w[:, :3, :3].double()
+    out[:, :3, 3] = (transform[:3, :3] @ c2w[:, :3, 3].double().T + transform[:3, 3:]).T
+    return out
+
+
+def load_transforms(
+    root: str | Path,
+    downscale: int = 1,
+    holdout_every: int = 8,
+    normalise: bool = True,
+    near: float = 0.05,
+    far: float = 4.0,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    max_views: int | None = None,
+) -> Scene:
+    """A ``transforms.json`` capture (instant-ngp or nerfstudio).
+
+    Args:
+        root: the json file, or the folder that holds ``transforms.json``.
+        downscale: integer factor the images are area-averaged by (intrinsics scaled).
+        holdout_every: every k-th frame with an image (0, k, 2k, ...) is held out as val and test; 0 for none.
+        normalise: centre, orient and scale the world (see the module's docstring).
+        near, far: the sampling range along unit rays, in the normalised world.
+        background: RGB that transparent pixels (RGBA images) are composited onto.
+        max_views: keep at most this many training views, evenly spaced.
+    """
+    path = Path(root).expanduser()
+    if path.is_dir():
+        path = path / "transforms.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"transforms.json not found: {path}")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not valid JSON: {error}") from error
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise ValueError(f"{path}: missing or empty 'frames' (expected a list of frames with file_path and transform_matrix)")
+
+    present, missing = [], []
+    for index, frame in enumerate(frames):
+        for key in ("file_path", "transform_matrix"):
+            if key not in frame:
+                raise ValueError(f"{path}: frame {index}: missing key '{key}'")
+        image_path = path.parent / str(frame["file_path"])
+        if not image_path.is_file() and image_path.suffix == "":
+            image_path = next((image_path.with_suffix(s) for s in (".png", ".jpg", ".jpeg") if image_path.with_suffix(s).is_file()), image_path)
+        (present if image_path.is_file() else missing).append((index, frame, image_path))
+    if missing:
+        names = ", ".join(str(frame["file_path"]) for _, frame, _ in missing)
+        log.warning("%s: %d of %d frames have no image file and are skipped: %s", path, len(missing), len(frames), names)
+    if not present:
+        raise FileNotFoundError(f"{path}: none of its {len(frames)} frames has an image file (first: {frames[0]['file_path']})")
+
+    images, Ks, matrices, names = [], [], [], []
+    for index, frame, image_path in present:
+        where = f"frame {index} ({frame['file_path']}): "
+        image = load_image(image_path, background=background)
+        K, distortion = frame_intrinsics(frame, meta, image.shape[1], image.shape[0], path, where)
+        K[:2] /= downscale  # downscale first, then undistort the smaller image: the distortion is in normalised coordinates
+        image = undistort(downscale_image(image, downscale), K, distortion)
+        if images and image.shape != images[0].shape:
+            raise ValueError(f"{image_path} is {image.shape[1]}x{image.shape[0]} but {names[0]} is {images[0].shape[1]}x{images[0].shape[0]}: all images must have one size")
+        images.append(image)
+        Ks.append(K)
+        matrices.append(frame["transform_matrix"])
+        names.append(image_path.name)
+    try:
+        c2w = torch.tensor(np.asarray(matrices, dtype=np.float64))
+    except ValueError as error:
+        raise ValueError(f"{path}: every 'transform_matrix' must be a 4x4 list of numbers ({error})") from error
+    c2w = validate_c2w(c2w, f"{path} 'transform_matrix'")
+    world_from_capture = normalising_transform(c2w) if normalise else torch.eye(4, dtype=torch.float64)
+    c2w = opengl_to_opencv(apply_similarity(world_from_capture, c2w)).float()
+
+    height, width = images[0].shape[:2]
+    views = Views(K=torch.stack(Ks), c2w=c2w, height=height, width=width, images=torch.stack(images), names=names)
+    count = len(views)
+    held = list(range(0, count, holdout_every)) if holdout_every else []
+    train = [i for i in range(count) if i not in held]
+    if max_views:
+        train = [train[i] for i in evenly_spaced(len(train), max_views)]
+    splits = {"train": views.subset(train)}
+    if held:
+        splits["val"] = splits["test"] = views.subset(held)
+    return Scene(
+        splits=splits, near=near, far=far, background=torch.tensor(background, dtype=torch.float32), source=str(path),
+        world_from_capture=world_from_capture.float(), aabb_scale=float(meta["aabb_scale"]) if "aabb_scale" in meta else None,
+    )

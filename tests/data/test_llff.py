@@ -1,0 +1,90 @@
+"""LLFF: the procedural scene written as poses_bounds.npy + images_<k>/ loads back to the same cameras; fern."""
+
+import numpy as np
+import pytest
+import torch
+
+from nerf_lightning.data.formats import load_llff
+from nerf_lightning.data.formats.llff import write_poses_bounds
+from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.io import write_png
+from tests.conftest import SHARED_DATA
+
+
+def write_llff(views, root, downscale=2):
+    """The views as an LLFF capture whose images are the ``images_<downscale>`` of a capture ``downscale`` times larger."""
+    folder = root / f"images_{downscale}"
+    folder.mkdir(parents=True)
+    for index, image in enumerate(views.images):
+        write_png(folder / f"image{index:03d}.png", image)
+    bounds = np.tile([2.0, 6.0], (len(views), 1))
+    write_poses_bounds(root / "poses_bounds.npy", views.c2w, downscale * views.height, downscale * views.width,
+                       downscale * float(views.K[0, 0, 0]), bounds)
+    return root
+
+
+def test_llff_round_trip_without_recentring_gives_the_same_cameras_and_rays(procedural_scene, tmp_path):
+    views = procedural_scene.train.subset(list(range(12)))
+    root = write_llff(views, tmp_path / "capture")
+    scene = load_llff(root, downscale=2, holdout_every=0, bd_factor=None, recentre=False)
+    loaded = scene.train
+    assert (loaded.height, loaded.width) == (views.height, views.width) and "val" not in scene.splits
+    torch.testing.assert_close(loaded.K, views.K)
+    torch.testing.assert_close(loaded.c2w, views.c2w, atol=1e-5, rtol=0)
+    torch.testing.assert_close(loaded.images, views.images, atol=1 / 255, rtol=0)  # through 8-bit PNG
+    rays = image_rays(loaded.K, loaded.c2w, loaded.height, loaded.width)
+    expected = image_rays(views.K, views.c2w, views.height, views.width)
+    for got, want in zip(rays, expected):
+        torch.testing.assert_close(got, want, atol=1e-4, rtol=0)
+    assert (scene.near, scene.far) == pytest.approx((1.8, 6.0))
+
+
+def test_llff_recentring_and_scaling_is_one_similarity_transform(procedural_scene, tmp_path):
+    views = procedural_scene.train.subset(list(range(16)))
+    root = write_llff(views, tmp_path / "capture")
+    scene = load_llff(root, downscale=2, holdout_every=4, bd_factor=0.75)
+    # held out: views 0, 4, 8, 12; trained: the rest, in order
+    assert scene.splits["val"].names == ["image000.png", "image004.png", "image008.png", "image012.png"]
+    order = [i for i in range(16) if i % 4] + [0, 4, 8, 12]
+    loaded = torch.cat([scene.train.c2w, scene.splits["val"].c2w]).double()
+    original = views.c2w[order].double()
+    # one rotation for every camera, and one scale: 1 / (nearest bound x 0.75) = 1 / 1.5
+    rotation = loaded[:, :3, :3] @ original[:, :3, :3].transpose(1, 2)
+    torch.testing.assert_close(rotation, rotation[:1].expand_as(rotation), atol=1e-5, rtol=0)
+    distances = torch.cdist(loaded[:, :3, 3], loaded[:, :3, 3]) / torch.cdist(original[:, :3, 3], original[:, :3, 3]).clamp(min=1e-9)
+    off_diagonal = ~torch.eye(16, dtype=torch.bool)
+    torch.testing.assert_close(distances[off_diagonal], torch.full((16 * 15,), 1 / 1.5, dtype=torch.float64), atol=1e-5, rtol=0)
+    # recentred: the mean camera centre is the origin and the cameras look down -z on average
+    torch.testing.assert_close(loaded[:, :3, 3].mean(0), torch.zeros(3, dtype=torch.float64), atol=1e-5, rtol=0)
+    mean_forward = torch.nn.functional.normalize(loaded[:, :3, 2].mean(0), dim=0)  # OpenCV +z: where a camera looks
+    torch.testing.assert_close(mean_forward, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64), atol=1e-5, rtol=0)
+    assert len(scene.splits["spiral"]) == 120 and scene.splits["spiral"].images is None
+
+
+def test_llff_bad_input_names_the_file(procedural_scene, tmp_path):
+    views = procedural_scene.train.subset(list(range(4)))
+    root = write_llff(views, tmp_path / "capture")
+    with pytest.raises(FileNotFoundError, match=r"images_4 not found.*\['images_2'\]"):
+        load_llff(root, downscale=4)
+    (root / "images_2" / "image003.png").unlink()
+    with pytest.raises(ValueError, match="3 images but .*poses_bounds.npy has 4 poses"):
+        load_llff(root, downscale=2)
+    np.save(root / "poses_bounds.npy", np.zeros((4, 15)))
+    with pytest.raises(ValueError, match=r"poses_bounds.npy: expected an \(N, 17\) array"):
+        load_llff(root, downscale=2)
+    array = np.ones((4, 17))
+    array[2, 3] = np.nan
+    np.save(root / "poses_bounds.npy", array)
+    with pytest.raises(ValueError, match="view 2 has non-finite values"):
+        load_llff(root, downscale=2)
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "nerf_llff_data" / "fern").is_dir(), reason="fern is not in ../shared/data")
+def test_fern_loads_like_the_nerf_code():
+    scene = load_llff(SHARED_DATA / "nerf_llff_data" / "fern", downscale=8)
+    train, val = scene.train, scene.splits["val"]
+    assert (len(train), len(val)) == (17, 3) and (train.height, train.width) == (378, 504)
+    assert float(train.K[0, 0, 0]) == pytest.approx(407.5658, abs=1e-3)  # the focal NeRF's load_llff prints for fern, factor 8
+    forward = torch.nn.functional.normalize(train.c2w[:, :3, 2].mean(0), dim=0)
+    assert forward[2] < -0.99  # forward-facing: the cameras look down -z of the recentred world
+    assert scene.near == pytest.approx(1.2, abs=1e-6)  # 0.9 x the nearest bound, which the scaling made 1 / 0.75

@@ -42,6 +42,9 @@ class RayDataModule(StepBatchesDataModule):
         val_split: ``val`` or ``test``: which held-out split validation uses (the other when it is absent).
         render_path: ``test`` (the scene's render or test cameras), ``orbit`` or ``spiral``.
         render_frames: frames of a generated orbit or spiral.
+        ndc: sample forward-facing scenes in normalised device coordinates (LLFF; cameras looking down -z):
+            the rays stay in the world here, and ``ndc_params`` (focal, width, height, near plane 1) tell the
+            model to convert them (:func:`~nerf_lightning.geometry.rays.ndc_rays`).
         val_steps, val_every, seed: see :class:`StepBatchesDataModule`.
     """
 
@@ -54,6 +57,7 @@ class RayDataModule(StepBatchesDataModule):
         val_split: str = "val",
         render_path: str = "test",
         render_frames: int = 60,
+        ndc: bool = False,
         val_steps: list[int] | tuple[int, ...] = (),
         val_every: int | None = 500,
         seed: int = 0,
@@ -67,6 +71,8 @@ class RayDataModule(StepBatchesDataModule):
         self.val_split = val_split
         self.render_path = render_path
         self.render_frames = render_frames
+        self.ndc = ndc
+        self.ndc_params: dict[str, float] | None = None
         self.scene: Scene | None = None
 
     def setup(self, stage: str | None = None) -> None:
@@ -74,6 +80,12 @@ class RayDataModule(StepBatchesDataModule):
             return
         self.scene = self.load_scene() if self.root is None else self.load_scene(self.root)
         train = self.scene.train
+        if self.ndc:
+            forward = torch.nn.functional.normalize(train.c2w[:, :3, 2].mean(0), dim=0)
+            if float(forward[2]) > -0.9:
+                raise ValueError(f"data.ndc=true needs forward-facing cameras looking down -z (an LLFF capture), but {self.scene.source}'s "
+                                 f"mean viewing direction is {[round(v, 3) for v in forward.tolist()]}")
+            self.ndc_params = {"focal": float(train.K[0, 0, 0]), "width": train.width, "height": train.height, "near_plane": 1.0}
         rays_o, rays_d = image_rays(train.K, train.c2w, train.height, train.width)
         self.rays_o = rays_o.reshape(-1, 3)  # (N*H*W, 3)
         self.rays_d = rays_d.reshape(-1, 3)

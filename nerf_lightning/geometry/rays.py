@@ -48,3 +48,30 @@ def sample_along_rays(
         t = lower + (upper - lower) * u.to(t.device)
     points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
     return points, t.contiguous()
+
+
+def ndc_rays(
+    rays_o: torch.Tensor, rays_d: torch.Tensor, focal: float, width: int, height: int, near_plane: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays of a forward-facing scene in normalised device coordinates (NeRF's ``ndc_rays``).
+
+    The world must have the cameras looking down -z (as LLFF's recentred world). A world point (x, y, z), z < 0,
+    maps to (-(2f/W) x/z, -(2f/H) y/z, 1 + 2n/z): the plane z = -n to -1 and z = -inf to +1, so the whole depth
+    range to infinity fits in [-1, 1]. Each ray's origin is first moved to the plane z = -``near_plane``.
+
+    Args:
+        rays_o, rays_d: (N, 3) rays in the world.
+        focal, width, height: the cameras' focal length and image size in pixels.
+
+    Returns:
+        origins and directions (N, 3) in NDC, so that t in [0, 1] runs from the near plane to infinity (the
+        directions are not unit).
+    """
+    t = -(near_plane + rays_o[..., 2]) / rays_d[..., 2]
+    rays_o = rays_o + t[..., None] * rays_d
+    ox, oy, oz = rays_o.unbind(-1)
+    dx, dy, dz = rays_d.unbind(-1)
+    sx, sy = -2.0 * focal / width, -2.0 * focal / height
+    origins = torch.stack([sx * ox / oz, sy * oy / oz, 1.0 + 2.0 * near_plane / oz], dim=-1)
+    directions = torch.stack([sx * (dx / dz - ox / oz), sy * (dy / dz - oy / oz), -2.0 * near_plane / oz], dim=-1)
+    return origins, directions

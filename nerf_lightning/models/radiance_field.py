@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nerf_lightning.geometry.rays import ndc_rays
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import FieldModule
 from nerf_lightning.rendering.occupancy import OccupancyGrid
@@ -70,6 +71,7 @@ class RadianceFieldModule(FieldModule):
         self.render_step_size, self.alpha_threshold, self.early_stop_eps = render_step_size, alpha_threshold, early_stop_eps
         self.samples_per_round = samples_per_round
         self.near, self.far = 2.0, 6.0
+        self.ndc: dict[str, float] | None = None  # NDC parameters of a forward-facing scene (data.ndc=true)
         self.register_buffer("background", torch.ones(3))
 
     def on_fit_start(self) -> None:
@@ -77,6 +79,9 @@ class RadianceFieldModule(FieldModule):
         if scene is not None:
             self.near, self.far = float(scene.near), float(scene.far)
             self.background.copy_(scene.background)
+            self.ndc = getattr(self.trainer.datamodule, "ndc_params", None)
+            if self.ndc:
+                self.near, self.far = 0.0, 1.0  # NDC rays run from the near plane (t = 0) to infinity (t = 1)
 
     @property
     def step_size(self) -> float:
@@ -84,15 +89,19 @@ class RadianceFieldModule(FieldModule):
         return self.render_step_size or (self.far - self.near) / self.n_samples
 
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False) -> dict[str, torch.Tensor]:
-        """(N, 3) rays -> rgb (N, 3), depth (N,), accumulation (N,) and more; see :func:`render_rays`."""
+        """(N, 3) world rays with unit directions -> rgb (N, 3), depth (N,), accumulation (N,) and more; see
+        :func:`render_rays`. With ``ndc`` the rays are sampled in NDC and the field sees the world directions."""
+        directions = rays_d
+        if self.ndc:
+            rays_o, rays_d = ndc_rays(rays_o, rays_d, self.ndc["focal"], self.ndc["width"], self.ndc["height"], self.ndc["near_plane"])
         if self.occupancy_grid is not None:
             return render_rays_marched(
                 self.field, self.occupancy_grid, rays_o, rays_d, self.near, self.far, self.step_size, perturb, self.background,
-                self.alpha_threshold, self.early_stop_eps, self.samples_per_round,
+                self.alpha_threshold, self.early_stop_eps, self.samples_per_round, directions=directions,
             )
         return render_rays(
             self.field, rays_o, rays_d, self.near, self.far, self.n_samples, perturb, self.background,
-            fine_field=self.fine_field, n_fine_samples=self.n_fine_samples,
+            fine_field=self.fine_field, n_fine_samples=self.n_fine_samples, directions=directions,
         )
 
     @torch.no_grad()
@@ -137,9 +146,10 @@ class RadianceFieldModule(FieldModule):
         return {"images": {"rgb": rgb, "depth": depth.reshape(height, width), "target": target}}
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["scene_bounds"] = {"near": self.near, "far": self.far}
+        checkpoint["scene_bounds"] = {"near": self.near, "far": self.far, "ndc": self.ndc}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         bounds = checkpoint.get("scene_bounds")
         if bounds:
             self.near, self.far = float(bounds["near"]), float(bounds["far"])
+            self.ndc = bounds.get("ndc")

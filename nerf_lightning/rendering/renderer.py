@@ -15,9 +15,9 @@ from nerf_lightning.rendering.volume import composite
 Field = Callable[[torch.Tensor, torch.Tensor], dict[str, torch.Tensor]]
 
 
-def _query(field: Field, rays_o, rays_d, t, deltas, background):
+def _query(field: Field, rays_o, rays_d, t, deltas, background, directions):
     points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
-    out = field(points, rays_d[:, None, :].expand_as(points))
+    out = field(points, directions[:, None, :].expand_as(points))
     return composite(out["rgb"], out["density"], t, deltas, background)
 
 
@@ -33,8 +33,11 @@ def render_rays(
     fine_field: Field | None = None,
     n_fine_samples: int = 0,
     generator: torch.Generator | None = None,
+    directions: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Render (N, 3) rays with unit directions.
+
+    ``directions``: (N, 3) unit view directions the field sees, where they differ from ``rays_d`` (NDC rays).
 
     ``n_samples`` stratified samples between near and far go through ``field``. With a ``fine_field`` and
     ``n_fine_samples`` > 0 (NeRF's hierarchical sampling), that many more samples are drawn from the coarse
@@ -43,15 +46,16 @@ def render_rays(
 
     Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,), ``weights`` (N, S), ``t`` (N, S).
     """
+    directions = rays_d if directions is None else directions
     _, t, deltas = sample_intervals(rays_o, rays_d, near, far, n_samples, perturb, generator)
-    coarse = _query(field, rays_o, rays_d, t, deltas, background)
+    coarse = _query(field, rays_o, rays_d, t, deltas, background, directions)
     coarse["t"] = t
     if fine_field is None or n_fine_samples <= 0:
         return coarse
     mids = 0.5 * (t[:, 1:] + t[:, :-1])  # bin edges between the coarse samples
     t_fine = sample_pdf(mids, coarse["weights"][:, 1:-1], n_fine_samples, perturb, generator)
     t_all = torch.sort(torch.cat([t, t_fine], dim=-1), dim=-1).values
-    fine = _query(fine_field, rays_o, rays_d, t_all, deltas_of(t_all, (far - near) / max(n_samples - 1, 1)), background)
+    fine = _query(fine_field, rays_o, rays_d, t_all, deltas_of(t_all, (far - near) / max(n_samples - 1, 1)), background, directions)
     fine["t"] = t_all
     fine.update({f"coarse_{key}": value for key, value in coarse.items() if key in ("rgb", "depth", "accumulation")})
     return fine
@@ -71,6 +75,7 @@ def render_rays_marched(
     early_stop_eps: float = 1e-4,
     samples_per_round: int = 16,
     generator: torch.Generator | None = None,
+    directions: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Render (N, 3) rays with unit directions through the occupied cells of ``grid`` only (empty-space skipping).
 
@@ -81,10 +86,13 @@ def render_rays_marched(
     ``early_stop_eps=0`` the result equals compositing every listed sample. ``alpha_threshold`` > 0 also
     drops nearly transparent steps, at the cost of a density pass (``field.density``) in the marcher.
 
+    ``directions``: (N, 3) unit view directions the field sees, where they differ from ``rays_d`` (NDC rays).
+
     Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,) and ``n_samples`` (how many samples the
     field was evaluated at, a 0-d tensor).
     """
     n_rays = rays_o.shape[0]
+    directions = rays_d if directions is None else directions
     ray_indices, t_starts, t_ends = march_rays(
         grid, rays_o, rays_d, near, far, step_size, perturb, generator,
         density_fn=field.density if alpha_threshold > 0 else None, alpha_threshold=alpha_threshold,
@@ -101,7 +109,7 @@ def render_rays_marched(
             break
         indices, starts, ends = ray_indices[chosen], t_starts[chosen], t_ends[chosen]
         points = rays_o[indices] + rays_d[indices] * (0.5 * (starts + ends))[:, None]
-        out = field(points, rays_d[indices])
+        out = field(points, directions[indices])
         part = composite_packed(out["rgb"], out["density"], starts, ends, indices, n_rays, transmittance_before=transmittance)
         colour, accumulation = colour + part["rgb"], accumulation + part["accumulation"]
         depth_sum = depth_sum + part["depth"] * part["accumulation"]

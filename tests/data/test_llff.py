@@ -88,3 +88,44 @@ def test_fern_loads_like_the_nerf_code():
     forward = torch.nn.functional.normalize(train.c2w[:, :3, 2].mean(0), dim=0)
     assert forward[2] < -0.99  # forward-facing: the cameras look down -z of the recentred world
     assert scene.near == pytest.approx(1.2, abs=1e-6)  # 0.9 x the nearest bound, which the scaling made 1 / 0.75
+
+
+def test_ndc_rays_pass_through_the_ndc_image_of_every_world_point_on_them():
+    from nerf_lightning.geometry.rays import ndc_rays
+
+    generator = torch.Generator().manual_seed(0)
+    rays_o = torch.randn(50, 3, generator=generator, dtype=torch.float64) * 0.2
+    rays_d = torch.nn.functional.normalize(torch.randn(50, 3, generator=generator, dtype=torch.float64) * 0.3 + torch.tensor([0, 0, -1.0]), dim=-1)
+    focal, width, height = 400.0, 500, 380
+    origins, directions = ndc_rays(rays_o, rays_d, focal, width, height, near_plane=1.0)
+    for depth in (1.5, 5.0, 40.0):  # world points on the rays at these depths, beyond the near plane z = -1
+        point = rays_o + ((-depth - rays_o[:, 2]) / rays_d[:, 2])[:, None] * rays_d
+        x, y, z = point.unbind(-1)
+        ndc_point = torch.stack([-2 * focal / width * x / z, -2 * focal / height * y / z, 1 + 2 * 1.0 / z], dim=-1)
+        t = (ndc_point[:, 2] - origins[:, 2]) / directions[:, 2]
+        assert ((t > 0) & (t < 1)).all()
+        torch.testing.assert_close(origins + t[:, None] * directions, ndc_point)
+    torch.testing.assert_close(origins[:, 2], torch.full((50,), -1.0, dtype=torch.float64))  # the near plane z = -1 maps to -1
+    torch.testing.assert_close(origins[:, 2] + directions[:, 2], torch.ones(50, dtype=torch.float64))  # t = 1 is infinity
+
+
+def test_a_forward_facing_capture_trains_in_ndc_and_renders_from_its_checkpoint(procedural_scene, tmp_path, monkeypatch, scene_cache):
+    from nerf_lightning.checkpoints import load_model
+    from nerf_lightning.config import compose_config
+    from nerf_lightning.train import train
+
+    # the procedural cameras within 35 degrees of one of them: a forward-facing capture
+    train_views = procedural_scene.train
+    axes = torch.nn.functional.normalize(train_views.c2w[:, :3, 2], dim=-1)
+    close = (axes @ axes[0] > np.cos(np.radians(35))).nonzero()[:, 0].tolist()
+    root = write_llff(train_views.subset(close), tmp_path / "capture")
+    run = tmp_path / "run"
+    metrics = train(compose_config([
+        "experiment=fast_llff", f"data.root={root}", "data.scene.downscale=2", "data.scene.holdout_every=4",
+        "model.field.n_levels=4", "model.field.log2_table_size=14", "model.field.max_resolution=128", "model.occupancy_grid.resolution=16",
+        "data.batch_size=256", "trainer.max_steps=20", "data.val_every=20", "trainer.enable_progress_bar=false",
+        "trainer.enable_model_summary=false", f"paths.output_dir={run}",
+    ]))
+    assert metrics["step"] == 20 and np.isfinite(metrics["val/psnr"])
+    model, _ = load_model(run / "checkpoints" / "last.ckpt")
+    assert model.ndc["focal"] == pytest.approx(float(train_views.K[0, 0, 0])) and (model.near, model.far) == (0.0, 1.0)

@@ -85,7 +85,7 @@ class RadianceFieldModule(FieldModule):
 
     @property
     def step_size(self) -> float:
-        """The marcher's step along unit rays."""
+        """The marcher's step in ray t: world units along unit rays, or NDC t (0 to 1) with ``ndc``."""
         return self.render_step_size or (self.far - self.near) / self.n_samples
 
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False) -> dict[str, torch.Tensor]:

@@ -99,7 +99,8 @@ class Snapshots(L.Callback):
             return
         self.history["val_step"].append(trainer.global_step)
         self.history["val_psnr"].append(float(trainer.callback_metrics["val/psnr"]))
-        self.history["val_seconds"].append(round(self._training_seconds(), 4))
+        # the validated weights are those after the last training step: its training clock, not the time since
+        self.history["val_seconds"].append(self.history["train_seconds"][-1] if self.history["train_seconds"] else round(self._training_seconds(), 4))
         if trainer.is_global_zero:
             write_json(self.output_dir / "psnr_history.json", self.history)
 

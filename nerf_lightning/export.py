@@ -1,4 +1,9 @@
-"""nerf-export: a mesh of a radiance field by marching cubes on its density, with vertex colours (PLY or OBJ)."""
+"""nerf-export: a mesh of a radiance field by marching cubes on its density, with vertex colours (PLY or OBJ).
+
+The density is meshed in the model's own coordinates (the scene's world, or NDC for a forward-facing scene);
+the vertices are then written in the capture's coordinates (``frame=capture``: NDC undone, the loader's
+normalisation undone, so the mesh lies where the capture's cameras are) or left in the scene's (``frame=scene``).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ import torch
 from omegaconf import DictConfig
 
 from nerf_lightning.checkpoints import load_model
+from nerf_lightning.geometry.rays import ndc_to_world
 from nerf_lightning.io import to_uint8, write_atomic
 
 log = logging.getLogger(__name__)
@@ -78,21 +84,59 @@ def obj_bytes(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> b
     return ("\n".join(lines) + "\n").encode()
 
 
+# a forward-facing scene's NDC box stops short of z = 1, which is infinitely far
+NDC_FAR_Z = 0.95
+
+
+def mesh_box(model, bounds) -> tuple[torch.Tensor, torch.Tensor]:
+    """The box to mesh, low (3,) and high (3,) in the model's coordinates: ``bounds`` as given, else the field's
+    own box (a grid field's ``aabb``; the inner box of a contracted one), else [-1.5, 1.5]^3; in NDC, z < 0.95."""
+    if bounds is not None:
+        low, high = torch.tensor(list(bounds[0]), dtype=torch.float32), torch.tensor(list(bounds[1]), dtype=torch.float32)
+    elif hasattr(model.field, "aabb"):
+        low, high = model.field.aabb[:3].float().cpu(), model.field.aabb[3:].float().cpu()
+    else:
+        low, high = torch.full((3,), -1.5), torch.full((3,), 1.5)
+    if model.ndc:
+        high = high.clone()
+        high[2] = min(float(high[2]), NDC_FAR_Z)
+    if not bool((high > low).all()):
+        raise ValueError(f"export bounds must have low < high on every axis, got {low.tolist()} and {high.tolist()}")
+    return low, high
+
+
+def to_capture(model, vertices: np.ndarray) -> np.ndarray:
+    """(V, 3) vertices in the model's coordinates -> (V, 3) in the capture's: NDC undone, then the loader's
+    normalisation (``world_from_capture``) undone."""
+    points = torch.from_numpy(vertices).double()
+    if model.ndc:
+        points = ndc_to_world(points, model.ndc["focal"], model.ndc["width"], model.ndc["height"], model.ndc["near_plane"])
+    if model.world_from_capture is not None:
+        capture_from_world = torch.linalg.inv(model.world_from_capture.double())
+        points = points @ capture_from_world[:3, :3].T + capture_from_world[:3, 3]
+    return points.numpy()
+
+
 def export(cfg: DictConfig) -> Path:
     model, info = load_model(cfg.ckpt_path, kind="radiance_field", command="nerf-export")
     if cfg.format not in ("ply", "obj"):
         raise ValueError(f"export format must be ply or obj, got '{cfg.format}'")
+    if cfg.frame not in ("capture", "scene"):
+        raise ValueError(f"export frame must be capture or scene, got '{cfg.frame}'")
     field = model.fine_field or model.field  # the fine network has the sharper density
-    low, high = torch.tensor(list(cfg.bounds[0]), dtype=torch.float32), torch.tensor(list(cfg.bounds[1]), dtype=torch.float32)
+    low, high = mesh_box(model, cfg.bounds)
     grid = density_grid(field.density, low, high, cfg.resolution)
     vertices, faces = marching_cubes(grid, cfg.threshold, low, high)
     if len(faces) == 0:
-        raise ValueError(f"no surface: the density never crosses export.threshold={cfg.threshold} in the box {cfg.bounds} "
+        raise ValueError(f"no surface: the density never crosses threshold={cfg.threshold} in the box {low.tolist()}..{high.tolist()} "
                          f"(its range there is {float(grid.min()):.3g}..{float(grid.max()):.3g}); lower the threshold or move the box")
     colours = vertex_colours(field, vertices)
+    if cfg.frame == "capture":
+        vertices = to_capture(model, vertices)
     encode = ply_bytes if cfg.format == "ply" else obj_bytes
     path = write_atomic(Path(cfg.output_dir) / f"mesh.{cfg.format}", encode(vertices, faces, colours))
-    log.info("wrote %s: %d vertices, %d faces (grid %d^3, threshold %g)", path, len(vertices), len(faces), cfg.resolution, cfg.threshold)
+    log.info("wrote %s: %d vertices, %d faces (grid %d^3 over %s..%s, threshold %g, %s coordinates)", path, len(vertices), len(faces),
+             cfg.resolution, low.tolist(), high.tolist(), cfg.threshold, cfg.frame)
     return path
 
 

@@ -12,9 +12,10 @@ from omegaconf import DictConfig
 from tqdm import tqdm
 
 from nerf_lightning.checkpoints import load_model, load_run_data
+from nerf_lightning.data.formats.transforms import transforms_meta
 from nerf_lightning.data.scene import Views
 from nerf_lightning.geometry.rays import image_rays
-from nerf_lightning.io import to_uint8, write_png
+from nerf_lightning.io import to_uint8, write_json, write_png
 from nerf_lightning.video import write_gif, write_mp4
 
 log = logging.getLogger(__name__)
@@ -59,7 +60,8 @@ def render_views(model, views: Views, desc: str = "rendering") -> list[dict[str,
 
 
 def render_radiance_field(model, cfg: DictConfig, output_dir: Path, config: dict) -> list[Path]:
-    """A radiance field renders the frames of a camera path: rgb.gif, depth.gif (and .mp4), PNG frames."""
+    """A radiance field renders the frames of a camera path: rgb.gif, depth.gif (and .mp4), PNG frames, and
+    transforms.json: the path's cameras in the capture's coordinates, so the frames load back as a capture."""
     datamodule = load_run_data(config)
     views = datamodule.render_views(cfg.render.path, cfg.render.frames)
     views = scaled(views, float(cfg.render.scale))
@@ -70,6 +72,8 @@ def render_radiance_field(model, cfg: DictConfig, output_dir: Path, config: dict
     for index, (colour, distance) in enumerate(zip(frames, depth)):
         written.append(write_png(output_dir / "frames" / f"rgb_{index:04d}.png", colour["rgb"]))
         written.append(write_png(output_dir / "frames" / f"depth_{index:04d}.png", torch.from_numpy(distance).float() / 255.0))
+    file_paths = [f"frames/rgb_{index:04d}.png" for index in range(len(frames))]
+    written.append(write_json(output_dir / "transforms.json", transforms_meta(views, file_paths, model.world_from_capture)))
     for name, stack in (("rgb", rgb), ("depth", depth)):
         written.append(write_gif(output_dir / f"{name}.gif", stack, fps=cfg.render.fps))
         mp4 = write_mp4(output_dir / f"{name}.mp4", stack, fps=cfg.render.fps)

@@ -10,6 +10,7 @@ from torch import nn
 from nerf_lightning.fields.encodings import SinusoidalEncoding, SphericalHarmonicsEncoding
 from nerf_lightning.fields.hash_grid import HashGridEncoding
 from nerf_lightning.fields.mlp import MLP
+from nerf_lightning.geometry.contraction import world_to_unit
 
 
 class _TruncExp(torch.autograd.Function):
@@ -35,7 +36,9 @@ class GridField(nn.Module):
     """Position -> grid encoding -> density MLP -> density and a geometry feature; feature + direction -> colour.
 
     Points are normalised to the unit cube by ``aabb`` (xmin, ymin, zmin, xmax, ymax, zmax) and encoded by
-    ``encoding`` (any module (..., 3) in [0, 1] -> (..., out_dim)); outside the box the density is 0. A
+    ``encoding`` (any module (..., 3) in [0, 1] -> (..., out_dim)); outside the box the density is 0, unless the
+    field is ``contracted`` (an unbounded scene: all of space is contracted into the cube around the box, see
+    :mod:`nerf_lightning.geometry.contraction`). A
     one-hidden-layer MLP gives the density (through ``trunc_exp``) and a geometry feature; a colour MLP of
     ``colour_layers`` hidden layers takes that feature and the view direction's encoding to RGB (sigmoid).
 
@@ -46,6 +49,7 @@ class GridField(nn.Module):
         geometry_features: width of the feature the density MLP hands the colour MLP.
         colour_layers: hidden layers of the colour MLP.
         direction_encoding: ``sh`` (spherical harmonics, 16 features) or ``sinusoidal`` (L = 4, 27 features).
+        contracted: model all of space, the box at full resolution and the rest contracted around it.
     """
 
     def __init__(
@@ -56,8 +60,10 @@ class GridField(nn.Module):
         geometry_features: int = 15,
         colour_layers: int = 2,
         direction_encoding: str = "sh",
+        contracted: bool = False,
     ) -> None:
         super().__init__()
+        self.contracted = contracted
         aabb = torch.as_tensor(list(aabb), dtype=torch.float32)
         if aabb.shape != (6,) or not bool((aabb[3:] > aabb[:3]).all()):
             raise ValueError(f"{type(self).__name__}: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {aabb.tolist()}")
@@ -74,10 +80,11 @@ class GridField(nn.Module):
 
     def density_and_feature(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., 3) points -> density (...,) >= 0 and the geometry feature (..., geometry_features)."""
-        unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
-        inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
+        unit = world_to_unit(points, self.aabb, self.contracted)
         out = self.density_mlp(self.encoding(unit))
-        density = trunc_exp(out[..., 0]) * inside
+        density = trunc_exp(out[..., 0])
+        if not self.contracted:
+            density = density * ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
         return density, out[..., 1:]
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
@@ -110,6 +117,7 @@ class HashGridField(GridField):
         geometry_features: int = 15,
         colour_layers: int = 2,
         direction_encoding: str = "sh",
+        contracted: bool = False,
     ) -> None:
         encoding = HashGridEncoding(n_levels, features_per_level, log2_table_size, base_resolution, max_resolution)
-        super().__init__(aabb, encoding, hidden_width, geometry_features, colour_layers, direction_encoding)
+        super().__init__(aabb, encoding, hidden_width, geometry_features, colour_layers, direction_encoding, contracted)

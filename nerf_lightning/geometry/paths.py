@@ -20,6 +20,10 @@ def look_at_point(c2w: torch.Tensor) -> torch.Tensor:
     return torch.linalg.lstsq(projectors.sum(0), (projectors @ origins[:, :, None]).sum(0)).solution[:, 0].to(c2w.dtype)
 
 
+# a capture whose cameras leave a gap wider than this around the subject is partial: paths stay on its arc
+PARTIAL_GAP_DEGREES = 90.0
+
+
 def _orbit_frame(c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, float, float]:
     """Centre, up and two horizontal axes of the training cameras, their mean distance and mean elevation."""
     centre = look_at_point(c2w)
@@ -33,23 +37,43 @@ def _orbit_frame(c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
     return centre, up, e1, e2, radius, elevation
 
 
+def covered_arc(c2w: torch.Tensor, centre: torch.Tensor, e1: torch.Tensor, e2: torch.Tensor) -> tuple[float, float]:
+    """(start, span) in radians of the azimuths around ``centre`` (in the e1, e2 plane) that the cameras cover:
+    everything but the widest gap between neighbouring cameras."""
+    offsets = c2w[:, :3, 3] - centre
+    azimuths = torch.sort(torch.atan2(offsets @ e2, offsets @ e1)).values
+    gaps = torch.cat([azimuths[1:] - azimuths[:-1], (azimuths[:1] + 2.0 * math.pi) - azimuths[-1:]])
+    widest = int(gaps.argmax())
+    return float(azimuths[(widest + 1) % len(azimuths)]), 2.0 * math.pi - float(gaps[widest])
+
+
+def _azimuths(c2w, centre, e1, e2, u: torch.Tensor, turns: int) -> torch.Tensor:
+    """Azimuths at path positions u in [0, 1): ``turns`` full circles, or, for a partial capture (a gap wider than
+    :data:`PARTIAL_GAP_DEGREES`), ``turns`` sweeps there and back along the arc the cameras cover."""
+    start, span = covered_arc(c2w, centre, e1, e2)
+    if 2.0 * math.pi - span <= math.radians(PARTIAL_GAP_DEGREES):
+        return 2.0 * math.pi * turns * u
+    return start + span * 0.5 * (1.0 - torch.cos(2.0 * math.pi * turns * u))
+
+
 def orbit_path(c2w: torch.Tensor, n_frames: int = 60, elevation_degrees: float | None = None) -> torch.Tensor:
     """(n_frames, 4, 4) OpenCV cameras circling the training cameras' look-at point once, at their mean
-    distance and (unless given) mean elevation, looking at that point with the training cameras' up."""
+    distance and (unless given) mean elevation, looking at that point with the training cameras' up; for a
+    partial capture, there and back along the arc its cameras cover."""
     centre, up, e1, e2, radius, elevation = _orbit_frame(c2w)
     if elevation_degrees is not None:
         elevation = math.radians(elevation_degrees)
-    theta = torch.linspace(0.0, 2.0 * math.pi, n_frames + 1)[:-1]
+    theta = _azimuths(c2w, centre, e1, e2, torch.linspace(0.0, 1.0, n_frames + 1)[:-1], turns=1)
     phi = torch.full_like(theta, elevation)
     return _cameras_on_sphere(centre, up, e1, e2, radius, theta, phi)
 
 
 def spiral_path(c2w: torch.Tensor, n_frames: int = 60, turns: int = 2, swing_degrees: float = 15.0) -> torch.Tensor:
-    """(n_frames, 4, 4) cameras on ``turns`` circles around the look-at point whose elevation swings
-    ``swing_degrees`` above and below the training cameras' mean elevation."""
+    """(n_frames, 4, 4) cameras on ``turns`` circles around the look-at point (sweeps along the covered arc, for
+    a partial capture) whose elevation swings ``swing_degrees`` above and below the cameras' mean elevation."""
     centre, up, e1, e2, radius, elevation = _orbit_frame(c2w)
     u = torch.linspace(0.0, 1.0, n_frames + 1)[:-1]
-    theta = 2.0 * math.pi * turns * u
+    theta = _azimuths(c2w, centre, e1, e2, u, turns)
     phi = elevation + math.radians(swing_degrees) * torch.sin(2.0 * math.pi * u)
     return _cameras_on_sphere(centre, up, e1, e2, radius, theta, phi)
 

@@ -75,3 +75,10 @@ def ndc_rays(
     origins = torch.stack([sx * ox / oz, sy * oy / oz, 1.0 + 2.0 * near_plane / oz], dim=-1)
     directions = torch.stack([sx * (dx / dz - ox / oz), sy * (dy / dz - oy / oz), -2.0 * near_plane / oz], dim=-1)
     return origins, directions
+
+
+def ndc_to_world(points: torch.Tensor, focal: float, width: int, height: int, near_plane: float = 1.0) -> torch.Tensor:
+    """The inverse of :func:`ndc_rays`'s map: (..., 3) NDC points with z < 1 -> (..., 3) world points (z < 0)."""
+    x, y, z = points.unbind(-1)
+    depth = 2.0 * near_plane / (z - 1.0)
+    return torch.stack([-x * depth * width / (2.0 * focal), -y * depth * height / (2.0 * focal), depth], dim=-1)

@@ -22,8 +22,9 @@ class RadianceFieldModule(FieldModule):
 
     Logs ``train/loss`` and ``train/psnr`` every step; ``val/psnr``, ``val/ssim`` (kornia) and, where the scene
     has true depth, ``val/depth_error`` (mean absolute error in scene units over pixels that see a surface)
-    over whole held-out views. Near, far and the background come from the scene at the start of fitting and
-    are kept in checkpoints.
+    over whole held-out views. Near, far, the background and ``world_from_capture`` (the similarity from the
+    capture's coordinates to the scene's, or None) come from the scene at the start of fitting and are kept in
+    checkpoints.
 
     Args:
         field: the (coarse) field: ``field(points, directions) -> {"rgb", "density"}``, with ``density(points)``.
@@ -40,6 +41,8 @@ class RadianceFieldModule(FieldModule):
         alpha_threshold, early_stop_eps, samples_per_round: see :func:`~nerf_lightning.rendering.renderer.render_rays_marched`:
             a ray stops being evaluated once its transmittance is below ``early_stop_eps``, checked every
             ``samples_per_round`` samples; ``alpha_threshold`` > 0 drops nearly transparent samples too.
+        cone_angle: > 0 makes the marcher's steps grow with the distance, ``max(step, cone_angle * t)``, for
+            unbounded scenes (a contracted field and grid), whose background reaches far.
     """
 
     kind = "radiance_field"
@@ -58,6 +61,7 @@ class RadianceFieldModule(FieldModule):
         alpha_threshold: float = 0.0,
         early_stop_eps: float = 1e-4,
         samples_per_round: int = 16,
+        cone_angle: float = 0.0,
     ) -> None:
         super().__init__(optimizer, scheduler)
         if occupancy_grid is not None and fine_field is not None and n_fine_samples > 0:
@@ -69,9 +73,10 @@ class RadianceFieldModule(FieldModule):
         self.chunk_size = chunk_size
         self.occupancy_grid = occupancy_grid
         self.render_step_size, self.alpha_threshold, self.early_stop_eps = render_step_size, alpha_threshold, early_stop_eps
-        self.samples_per_round = samples_per_round
+        self.samples_per_round, self.cone_angle = samples_per_round, cone_angle
         self.near, self.far = 2.0, 6.0
         self.ndc: dict[str, float] | None = None  # NDC parameters of a forward-facing scene (data.ndc=true)
+        self.world_from_capture: torch.Tensor | None = None
         self.register_buffer("background", torch.ones(3))
 
     def on_fit_start(self) -> None:
@@ -79,6 +84,7 @@ class RadianceFieldModule(FieldModule):
         if scene is not None:
             self.near, self.far = float(scene.near), float(scene.far)
             self.background.copy_(scene.background)
+            self.world_from_capture = scene.world_from_capture
             self.ndc = getattr(self.trainer.datamodule, "ndc_params", None)
             if self.ndc:
                 self.near, self.far = 0.0, 1.0  # NDC rays run from the near plane (t = 0) to infinity (t = 1)
@@ -97,7 +103,7 @@ class RadianceFieldModule(FieldModule):
         if self.occupancy_grid is not None:
             return render_rays_marched(
                 self.field, self.occupancy_grid, rays_o, rays_d, self.near, self.far, self.step_size, perturb, self.background,
-                self.alpha_threshold, self.early_stop_eps, self.samples_per_round, directions=directions,
+                self.alpha_threshold, self.early_stop_eps, self.samples_per_round, directions=directions, cone_angle=self.cone_angle,
             )
         return render_rays(
             self.field, rays_o, rays_d, self.near, self.far, self.n_samples, perturb, self.background,
@@ -127,7 +133,12 @@ class RadianceFieldModule(FieldModule):
         return loss
 
     def depth_image(self, depth: torch.Tensor) -> torch.Tensor:
-        """Depth normalised to [0, 1] between near and far (near bright), for pictures."""
+        """Depth as a picture in [0, 1], near bright: linear between near and far, or, for an unbounded scene (a
+        contracted grid), contracted like the scene: 1 - d/2 up to d = 1 (the box's half-size), 1/(2d) beyond."""
+        if self.occupancy_grid is not None and self.occupancy_grid.contracted:
+            half_size = float((self.occupancy_grid.aabb[3:] - self.occupancy_grid.aabb[:3]).max()) / 2.0
+            distance = depth / half_size
+            return torch.where(distance <= 1.0, 1.0 - distance / 2.0, 0.5 / distance.clamp(min=1.0))
         return (1.0 - (depth - self.near) / (self.far - self.near)).clamp(0.0, 1.0)
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
@@ -146,10 +157,13 @@ class RadianceFieldModule(FieldModule):
         return {"images": {"rgb": rgb, "depth": depth.reshape(height, width), "target": target}}
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["scene_bounds"] = {"near": self.near, "far": self.far, "ndc": self.ndc}
+        world_from_capture = None if self.world_from_capture is None else self.world_from_capture.tolist()
+        checkpoint["scene_bounds"] = {"near": self.near, "far": self.far, "ndc": self.ndc, "world_from_capture": world_from_capture}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         bounds = checkpoint.get("scene_bounds")
         if bounds:
             self.near, self.far = float(bounds["near"]), float(bounds["far"])
             self.ndc = bounds.get("ndc")
+            if bounds.get("world_from_capture") is not None:
+                self.world_from_capture = torch.tensor(bounds["world_from_capture"])

@@ -5,6 +5,10 @@ opacity ``density * step_size`` the field has there, refreshed every few trainin
 a cell is occupied where that estimate exceeds ``min(threshold, mean)``. The marcher steps along each ray
 through the box at a fixed step, keeps the steps whose midpoint is in an occupied cell and, given the field's
 density, drops the steps that are nearly transparent or that lie behind where the ray is nearly opaque.
+
+An unbounded scene has a ``contracted`` grid: it covers all of space, contracted around the box (see
+:mod:`nerf_lightning.geometry.contraction`), and rays are marched from near to far with steps that grow with
+the distance (``cone_angle``, Instant-NGP's), so that the far background costs few steps.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
+from nerf_lightning.geometry.contraction import unit_to_world, world_to_unit
 from nerf_lightning.rendering.packed import exclusive_sum_packed
 
 # points (M, 3) -> densities (M,)
@@ -52,6 +57,8 @@ class OccupancyGrid(nn.Module):
         threshold: opacity (density x step size) above which a cell is occupied; lowered to the grid's mean
             opacity where that is smaller, so that a field of low density everywhere is not all empty.
         seed: cells and jitter of refresh k are drawn from ``seed + k``, so a resumed run refreshes alike.
+        contracted: the grid covers all of space, contracted around the box (an unbounded scene, see
+            :mod:`nerf_lightning.geometry.contraction`), instead of the box alone.
 
     Buffers ``occupancy`` (R, R, R) float and ``binary`` (R, R, R) bool go into checkpoints. The grid starts
     all occupied (nothing is skipped before the first refresh).
@@ -66,8 +73,10 @@ class OccupancyGrid(nn.Module):
         decay: float = 0.95,
         threshold: float = 0.01,
         seed: int = 0,
+        contracted: bool = False,
     ) -> None:
         super().__init__()
+        self.contracted = contracted
         aabb = torch.as_tensor(list(aabb), dtype=torch.float32)
         if aabb.shape != (6,) or not bool((aabb[3:] > aabb[:3]).all()):
             raise ValueError(f"OccupancyGrid: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {aabb.tolist()}")
@@ -81,7 +90,7 @@ class OccupancyGrid(nn.Module):
 
     def cell_of(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., 3) points -> (..., 3) integer cell coordinates (clamped) and (...,) whether the point is in the box."""
-        unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
+        unit = world_to_unit(points, self.aabb, self.contracted)
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
         return (unit * self.resolution).long().clamp(0, self.resolution - 1), inside
 
@@ -94,7 +103,7 @@ class OccupancyGrid(nn.Module):
         """(R, R, R, 3) the centres of the cells, in scene coordinates."""
         axis = (torch.arange(self.resolution, device=self.aabb.device, dtype=self.aabb.dtype) + 0.5) / self.resolution
         unit = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1)
-        return self.aabb[:3] + unit * (self.aabb[3:] - self.aabb[:3])
+        return unit_to_world(unit, self.aabb, self.contracted)
 
     @torch.no_grad()
     def update(self, step: int, density_fn: DensityFn, step_size: float, chunk_size: int = 65536) -> bool:
@@ -117,7 +126,7 @@ class OccupancyGrid(nn.Module):
         coords = torch.stack([cells // self.resolution**2, cells // self.resolution % self.resolution, cells % self.resolution], dim=-1)
         unit = (coords + torch.rand(coords.shape, generator=generator)) / self.resolution
         cells, unit = cells.to(self.aabb.device), unit.to(self.aabb)
-        points = self.aabb[:3] + unit * (self.aabb[3:] - self.aabb[:3])
+        points = unit_to_world(unit, self.aabb, self.contracted)
         density = torch.cat([density_fn(part) for part in points.split(chunk_size)])
         occupancy, estimate = self.occupancy.view(-1), density.to(self.occupancy) * step_size
         if step < self.warmup_steps:  # every cell was just evaluated: take the new estimate as it is
@@ -136,6 +145,20 @@ class OccupancyGrid(nn.Module):
             self.binary.copy_(self.occupancy > min(self.threshold, float(self.occupancy.mean())))
 
 
+def step_edges(start: float, stop: float, step_size: float, cone_angle: float) -> torch.Tensor:
+    """(K + 1,) float64 edges of the steps from ``start`` to past ``stop``: a step at distance t is
+    ``max(step_size, cone_angle * t)`` long, so constant up to t = step_size / cone_angle and growing
+    geometrically, by (1 + cone_angle) a step, beyond it (Instant-NGP's cone tracing)."""
+    linear_end = max(start, step_size / cone_angle)
+    n_linear = math.ceil(max(min(linear_end, stop) - start, 0.0) / step_size)
+    edges = start + step_size * torch.arange(n_linear + 1, dtype=torch.float64)
+    last = float(edges[-1])
+    if last < stop:
+        n_geometric = math.ceil(math.log(stop / last) / math.log1p(cone_angle))
+        edges = torch.cat([edges, last * (1.0 + cone_angle) ** torch.arange(1, n_geometric + 1, dtype=torch.float64)])
+    return edges
+
+
 def march_rays(
     grid: OccupancyGrid,
     rays_o: torch.Tensor,
@@ -148,27 +171,41 @@ def march_rays(
     density_fn: DensityFn | None = None,
     alpha_threshold: float = 0.0,
     early_stop_eps: float = 0.0,
+    cone_angle: float = 0.0,
 ) -> PackedSamples:
     """March (N, 3) rays (unit directions) through the grid's box between near and far; packed samples of occupied cells.
 
     Steps are ``step_size`` long from where a ray enters the box (after ``near``), shifted by one random
     fraction of a step per ray when ``perturb``; the last is cut at the exit (or ``far``), so that no sample
-    reaches beyond far. A step is kept where its midpoint lies in an occupied cell. With ``density_fn`` the
-    kept steps are evaluated once without gradients, and those with opacity below ``alpha_threshold`` or
-    transmittance below ``early_stop_eps`` (the ray has already ended) are dropped as well.
+    reaches beyond far. With ``cone_angle`` > 0 a step at distance t is ``max(step_size, cone_angle * t)``
+    long instead (:func:`step_edges`, the same for every ray), and a ray's first step is the first of them
+    inside the box. A contracted grid has no box to enter: rays run from near to far. A step is kept where its
+    midpoint lies in an occupied cell. With ``density_fn`` the kept steps are evaluated once without
+    gradients, and those with opacity below ``alpha_threshold`` or transmittance below ``early_stop_eps``
+    (the ray has already ended) are dropped as well.
     """
     n_rays = rays_o.shape[0]
-    t_enter, t_exit = ray_aabb_intersect(rays_o, rays_d, grid.aabb)
-    t_enter, t_exit = t_enter.clamp(min=near), t_exit.clamp(max=far)
-    length = (t_exit - t_enter).clamp(min=0.0)
-    n_steps = int(math.ceil(float(length.max()) / step_size)) if n_rays else 0
+    if grid.contracted:
+        t_enter, t_exit = rays_o.new_full((n_rays,), near), rays_o.new_full((n_rays,), far)
+    else:
+        t_enter, t_exit = ray_aabb_intersect(rays_o, rays_d, grid.aabb)
+        t_enter, t_exit = t_enter.clamp(min=near), t_exit.clamp(max=far)
     if perturb:
         shift = torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype).to(rays_o.device)
     else:
         shift = torch.zeros(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device)
-    steps = torch.arange(n_steps, dtype=rays_o.dtype, device=rays_o.device)
-    t_starts = t_enter[:, None] + (steps + shift) * step_size  # (N, n_steps)
-    t_ends = torch.minimum(t_starts + step_size, t_exit[:, None])
+    if cone_angle > 0.0 and n_rays:
+        edges = step_edges(float(t_enter.min()), float(t_exit.max()), step_size, cone_angle).to(rays_o)
+        widths = edges[1:] - edges[:-1]
+        t_starts = edges[:-1] + shift * widths  # (N, K)
+        t_ends = torch.minimum(edges[1:] + shift * torch.cat([widths[1:], widths[-1:]]), t_exit[:, None])
+        t_starts = torch.where(t_starts >= t_enter[:, None], t_starts, t_exit[:, None])  # before the box: dropped below
+    else:
+        length = (t_exit - t_enter).clamp(min=0.0)
+        n_steps = int(math.ceil(float(length.max()) / step_size)) if n_rays else 0
+        steps = torch.arange(n_steps, dtype=rays_o.dtype, device=rays_o.device)
+        t_starts = t_enter[:, None] + (steps + shift) * step_size  # (N, n_steps)
+        t_ends = torch.minimum(t_starts + step_size, t_exit[:, None])
     midpoints = rays_o[:, None, :] + rays_d[:, None, :] * (0.5 * (t_starts + t_ends))[..., None]
     keep = (t_starts < t_exit[:, None]) & grid.occupied(midpoints)
     ray_indices = keep.nonzero()[:, 0]  # row-major: by ray, then by distance

@@ -76,6 +76,7 @@ def render_rays_marched(
     samples_per_round: int = 16,
     generator: torch.Generator | None = None,
     directions: torch.Tensor | None = None,
+    cone_angle: float = 0.0,
 ) -> dict[str, torch.Tensor]:
     """Render (N, 3) rays with unit directions through the occupied cells of ``grid`` only (empty-space skipping).
 
@@ -87,6 +88,7 @@ def render_rays_marched(
     drops nearly transparent steps, at the cost of a density pass (``field.density``) in the marcher.
 
     ``directions``: (N, 3) unit view directions the field sees, where they differ from ``rays_d`` (NDC rays).
+    ``cone_angle`` > 0: steps grow with the distance (see :func:`~nerf_lightning.rendering.occupancy.march_rays`).
 
     Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,) and ``n_samples`` (how many samples the
     field was evaluated at, a 0-d tensor).
@@ -95,7 +97,7 @@ def render_rays_marched(
     directions = rays_d if directions is None else directions
     ray_indices, t_starts, t_ends = march_rays(
         grid, rays_o, rays_d, near, far, step_size, perturb, generator,
-        density_fn=field.density if alpha_threshold > 0 else None, alpha_threshold=alpha_threshold,
+        density_fn=field.density if alpha_threshold > 0 else None, alpha_threshold=alpha_threshold, cone_angle=cone_angle,
     )
     counts = torch.bincount(ray_indices, minlength=n_rays)
     rank = torch.arange(len(ray_indices), device=rays_o.device) - (torch.cumsum(counts, 0) - counts)[ray_indices]  # (M,) within its ray

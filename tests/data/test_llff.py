@@ -6,6 +6,7 @@ import torch
 
 from nerf_lightning.data.formats import load_llff
 from nerf_lightning.data.formats.llff import write_poses_bounds
+from nerf_lightning.data.formats.transforms import apply_similarity
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.io import write_png
 from tests.conftest import SHARED_DATA
@@ -59,6 +60,9 @@ def test_llff_recentring_and_scaling_is_one_similarity_transform(procedural_scen
     mean_forward = torch.nn.functional.normalize(loaded[:, :3, 2].mean(0), dim=0)  # OpenCV +z: where a camera looks
     torch.testing.assert_close(mean_forward, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64), atol=1e-5, rtol=0)
     assert len(scene.splits["spiral"]) == 120 and scene.splits["spiral"].images is None
+    # the kept similarity takes the file's cameras to the loaded ones
+    mapped = apply_similarity(scene.world_from_capture.double(), original)
+    torch.testing.assert_close(mapped, loaded, atol=1e-5, rtol=0)
 
 
 def test_llff_bad_input_names_the_file(procedural_scene, tmp_path):

@@ -10,6 +10,7 @@ import torch
 from nerf_lightning.data.formats import load_transforms
 from nerf_lightning.data.formats.transforms import apply_similarity
 from nerf_lightning.geometry.cameras import opengl_to_opencv
+from nerf_lightning.geometry.paths import look_at_point
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.io import write_png
 from tests.conftest import SHARED_DATA
@@ -52,15 +53,21 @@ def test_transforms_round_trip_skips_missing_frames_with_one_warning(procedural_
         torch.testing.assert_close(got, want, atol=1e-4, rtol=0)
 
 
-def test_transforms_normalisation_is_kept_to_map_back(procedural_scene, tmp_path):
+@pytest.mark.parametrize("centre", ["poses", "focus"])
+def test_transforms_normalisation_is_kept_to_map_back(procedural_scene, tmp_path, centre):
     views = procedural_scene.train.subset(list(range(16)))
+    views.c2w[:, :3, 3] += torch.tensor([3.0, -2.0, 1.0])  # the subject away from the file's origin
     root = write_transforms(views, tmp_path / "capture")
-    scene = load_transforms(root, holdout_every=4)
+    scene = load_transforms(root, holdout_every=4, centre=centre)
     assert len(scene.train) == 12 and len(scene.splits["val"]) == 4
     order = [i for i in range(16) if i % 4] + [0, 4, 8, 12]
     loaded = torch.cat([scene.train.c2w, scene.splits["val"].c2w])
     centres = loaded[:, :3, 3]
-    torch.testing.assert_close(centres.mean(0), torch.zeros(3), atol=1e-5, rtol=0)
+    # poses: the mean camera centre at the origin; focus: the point the cameras look at (the procedural scene's centre)
+    origin = centres.mean(0) if centre == "poses" else look_at_point(loaded)
+    torch.testing.assert_close(origin, torch.zeros(3), atol=1e-5, rtol=0)
+    if centre == "focus":
+        assert float(centres.mean(0).norm()) > 0.05  # 16 cameras of a sphere: their mean is not its centre
     assert float(centres.abs().max()) == pytest.approx(1.0, abs=1e-5)
     up = torch.nn.functional.normalize(-loaded[:, :3, 1].mean(0), dim=0)  # OpenCV: -y is up
     torch.testing.assert_close(up, torch.tensor([0.0, 0.0, 1.0]), atol=1e-5, rtol=0)

@@ -15,6 +15,7 @@ from nerf_lightning.rendering import (
     ray_aabb_intersect,
     render_rays_marched,
 )
+from nerf_lightning.rendering.occupancy import step_edges
 
 UNIT_BOX = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
 
@@ -112,6 +113,47 @@ def test_marching_an_all_occupied_grid_covers_each_ray_inside_the_box_exactly():
     torch.testing.assert_close(covered, exit_ - enter, atol=1e-4, rtol=0)
     counts = torch.bincount(ray_indices, minlength=50)
     assert (counts == torch.ceil((exit_ - enter) / 0.03 - 1e-4)).all()
+
+
+def test_cone_steps_grow_with_the_distance():
+    edges = step_edges(0.05, 100.0, 0.01, 1 / 64)
+    widths, starts = edges[1:] - edges[:-1], edges[:-1]
+    assert float(edges[0]) == 0.05 and float(edges[-2]) < 100.0 <= float(edges[-1])
+    # each step is max(step, cone * t) long: constant up to t = 0.64, then 1/64 of the distance
+    torch.testing.assert_close(widths, torch.maximum(torch.full_like(starts, 0.01), starts / 64), atol=0.01, rtol=0.02)
+    assert float(widths[0]) == pytest.approx(0.01) and float(widths[-1]) == pytest.approx(float(starts[-1]) / 64, rel=1e-6)
+    assert len(edges) < 400  # 60 constant steps, then log(100 / 0.64) / log(1 + 1/64) geometric ones; 10 000 at a fixed step
+
+
+def test_a_contracted_grid_marches_every_ray_from_near_to_far_with_cone_steps():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8, contracted=True)  # all occupied: all of space
+    rays_o, rays_d = rays_towards_origin(40, seed=5, radius=0.5)  # inside the box
+    near, far = 0.05, 50.0
+    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, near, far, step_size=0.02, perturb=False, cone_angle=1 / 32)
+    covered = torch.zeros(40).index_add_(0, ray_indices, t_ends - t_starts)
+    torch.testing.assert_close(covered, torch.full((40,), far - near), rtol=1e-5, atol=1e-4)
+    assert (torch.bincount(ray_indices, minlength=40) == len(step_edges(near, far, 0.02, 1 / 32)) - 1).all()
+    # the cells far away are contracted ones: a grid whose outer shell is empty drops the far samples only
+    grid.binary[1:-1, 1:-1, 1:-1] = True
+    grid.binary[0], grid.binary[-1], grid.binary[:, 0], grid.binary[:, -1], grid.binary[:, :, 0], grid.binary[:, :, -1] = (False,) * 6
+    kept = march_rays(grid, rays_o, rays_d, near, far, step_size=0.02, perturb=False, cone_angle=1 / 32)
+    midpoints = rays_o[kept.ray_indices] + rays_d[kept.ray_indices] * (0.5 * (kept.t_starts + kept.t_ends))[:, None]
+    norms = midpoints.abs().amax(-1)
+    # the outer shell of an 8-cell grid holds contracted |y| > 1.5, that is |x| > 1 / (2 - 1.5) = 2
+    assert 0 < len(kept.ray_indices) < len(ray_indices) and float(norms.max()) <= 2.0 + 1e-4
+    assert float(norms.max()) > 1.5  # and the cells inside it reach beyond the box (|x| <= 1)
+
+
+def test_a_contracted_grid_refreshes_cells_all_over_space():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8, contracted=True, warmup_steps=10)
+    centres = grid.cell_centres().reshape(-1, 3)
+    # the outermost centres: contracted |y| = 2 - 0.25, so |x| = 1 / (2 - 1.75) = 4, four times the box's half-size
+    torch.testing.assert_close(centres.abs().amax(-1).max(), torch.tensor(4.0))
+    cells, inside = grid.cell_of(centres)
+    assert bool(inside.all())
+    assert torch.equal(cells, torch.stack(torch.meshgrid(*[torch.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3))
+    grid.update(0, lambda points: (points.abs().amax(-1) > 3.0).float() * 100.0, step_size=0.02)  # only far away is dense
+    assert bool(grid.occupied(torch.tensor([[10.0, 0.0, 0.0]]))[0]) and not bool(grid.occupied(torch.zeros(1, 3))[0])
 
 
 def test_an_empty_grid_gives_no_samples_and_the_background():

@@ -7,7 +7,8 @@ in ``images/`` (full size) or ``images_<k>/`` (downscaled k times), sorted by na
 
 As in the NeRF code (``load_llff.py``): the axes become [right, up, back] (OpenGL), the scene is scaled so that the
 nearest bound is 1 / ``bd_factor``, and recentred on the average camera (its position the mean centre, its back
-axis the mean back axis), so the cameras look down -z of the world. Views are then converted to this project's
+axis the mean back axis), so the cameras look down -z of the world; that similarity is kept as
+``scene.world_from_capture``. Views are then converted to this project's
 OpenCV cameras. The ``spiral`` split (what ``render.path=spiral`` renders) is NeRF's spiral: ``n_frames`` cameras on two turns of an ellipse around the
 average camera, looking at the focus depth, with radii the 90th percentile of the camera offsets.
 """
@@ -142,12 +143,16 @@ def load_llff(
         raise ValueError(f"{folder}: images of {width}x{height} are not a uniform downscale of the poses' {full_width:.0f}x{full_height:.0f}")
     focal = full_focal / scale_x
 
+    world_from_capture = np.eye(4)  # the similarity below, kept with the scene to map results back
     if bd_factor is not None:
         scale = 1.0 / (bounds.min() * bd_factor)
         c2w[:, :3, 3] *= scale
         bounds = bounds * scale
+        world_from_capture = np.diag([scale, scale, scale, 1.0])
     if recentre:
-        c2w = (np.linalg.inv(_homogeneous(average_pose(c2w))) @ _homogeneous(c2w))[:, :3]
+        recentring = np.linalg.inv(_homogeneous(average_pose(c2w)))
+        c2w = (recentring @ _homogeneous(c2w))[:, :3]
+        world_from_capture = recentring @ world_from_capture
     spiral = llff_spiral(c2w, bounds, render_frames)
 
     def to_opencv(matrices: np.ndarray, source: str) -> torch.Tensor:
@@ -168,4 +173,5 @@ def load_llff(
     splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
     near = float(bounds.min() * 0.9) if near is None else near
     far = float(bounds.max()) if far is None else far
-    return Scene(splits=splits, near=near, far=far, background=torch.zeros(3), source=str(root))
+    return Scene(splits=splits, near=near, far=far, background=torch.zeros(3), source=str(root),
+                 world_from_capture=torch.from_numpy(world_from_capture).float())

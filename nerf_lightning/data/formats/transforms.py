@@ -6,10 +6,16 @@ distortion ``k1``, ``k2``, ``p1``, ``p2`` (``k3`` too). Each frame has ``file_pa
 and ``transform_matrix`` (OpenGL camera-to-world, as in the Blender scenes). Frames whose image is missing are
 skipped with one warning naming them. Images with distortion are undistorted with kornia onto the same pinhole K.
 
-The world is normalised as nerfstudio's ``auto_orient_and_center_poses`` (method ``up``) and scale do: centred on
-the mean camera centre, rotated so that the mean camera up is +z, scaled so that the farthest camera centre
-coordinate is 1. That 4x4 similarity is kept as ``scene.world_from_capture``, so renders and meshes can be mapped
-back to the capture's coordinates; ``aabb_scale`` is kept as ``scene.aabb_scale``.
+The world is normalised as nerfstudio's ``auto_orient_and_center_poses`` (orientation ``up``) and scale do:
+centred on the cameras' focus (``centre="focus"``: the point nearest every optical axis, where an inward-facing
+capture's subject is) or on the mean camera centre (``"poses"``), rotated so that the mean camera up is +z, scaled
+so that the farthest camera centre coordinate is 1. That 4x4 similarity is kept as ``scene.world_from_capture``,
+so renders and meshes can be mapped back to the capture's coordinates, and another file of the same capture can
+be loaded into the same world (``world_from_capture=``). ``aabb_scale`` (instant-ngp: the scene reaches that many
+times beyond the cameras' unit box) is kept as ``scene.aabb_scale`` and sets the default far bound.
+
+Splits: nerfstudio's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` lists where the json has them,
+else every ``holdout_every``-th frame held out as val and test.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import load_image
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
+from nerf_lightning.geometry.paths import look_at_point
 
 log = logging.getLogger(__name__)
 
@@ -77,10 +84,24 @@ def undistort(image: torch.Tensor, K: torch.Tensor, distortion: torch.Tensor) ->
     return kornia.geometry.calibration.undistort_image(image.permute(2, 0, 1)[None], K[None], distortion[None])[0].permute(1, 2, 0)
 
 
-def normalising_transform(c2w: torch.Tensor) -> torch.Tensor:
-    """(N, 4, 4) OpenGL cameras -> (4, 4) similarity: centre on the mean camera, mean up to +z, farthest coordinate 1."""
+CENTRES = ("focus", "poses", "none")
+
+
+def normalising_transform(c2w: torch.Tensor, centre: str = "focus") -> torch.Tensor:
+    """(N, 4, 4) OpenGL cameras -> (4, 4) similarity: centre on the cameras' focus (``focus``), on their mean
+    centre (``poses``) or not at all (``none``); mean up to +z; farthest camera coordinate 1.
+
+    ``focus`` falls back to ``poses`` where the cameras do not look towards a common point (it would lie behind them)."""
+    if centre not in CENTRES:
+        raise ValueError(f"data.scene.centre must be one of {CENTRES}, got '{centre}'")
     c2w = c2w.double()
-    centre = c2w[:, :3, 3].mean(0)
+    origins = c2w[:, :3, 3]
+    if centre == "focus":
+        focus = look_at_point(opengl_to_opencv(c2w))
+        in_front = float(((focus - origins) * -c2w[:, :3, 2]).sum(-1).mean()) > 0  # OpenGL cameras look down -z
+        centre_point = focus if in_front else origins.mean(0)
+    else:
+        centre_point = origins.mean(0) if centre == "poses" else torch.zeros(3, dtype=torch.float64)
     up = torch.nn.functional.normalize(c2w[:, :3, 1].mean(0), dim=0)
     # the rotation taking ``up`` to +z (Rodrigues), as nerfstudio's rotation_matrix(up, [0, 0, 1])
     z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
@@ -91,13 +112,14 @@ def normalising_transform(c2w: torch.Tensor) -> torch.Tensor:
         skew = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]], dtype=torch.float64)
         rotation = torch.eye(3, dtype=torch.float64) + skew + skew @ skew / (1.0 + cosine)
     transform = torch.eye(4, dtype=torch.float64)
-    transform[:3, :3], transform[:3, 3] = rotation, -rotation @ centre
+    transform[:3, :3], transform[:3, 3] = rotation, -rotation @ centre_point
     scale = 1.0 / float((transform[:3, :3] @ c2w[:, :3, 3].T + transform[:3, 3:]).abs().max())
     return torch.diag(torch.tensor([scale, scale, scale, 1.0], dtype=torch.float64)) @ transform
 
 
 def apply_similarity(transform: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
-    """A (4, 4) similarity applied to (N, 4, 4) cameras, their rotations kept orthonormal."""
+    """A (4, 4) similarity applied to (N, 4, 4) cameras, their rotations kept orthonormal; float64 out."""
+    transform = transform.double()
     scale = transform[:3, :3].det().abs() ** (1.0 / 3.0)
     out = c2w.double().clone()
     out[:, :3, :3] = (transform[:3, :3] / scale) @ c2w[:, :3, :3].double()
@@ -111,9 +133,11 @@ def load_transforms(
     holdout_every: int = 8,
     normalise: bool = True,
     near: float = 0.05,
-    far: float = 4.0,
+    far: float | None = None,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     max_views: int | None = None,
+    centre: str = "focus",
+    world_from_capture: torch.Tensor | list | None = None,
 ) -> Scene:
     """A ``transforms.json`` capture (instant-ngp or nerfstudio).
 
@@ -121,10 +145,15 @@ def load_transforms(
         root: the json file, or the folder that holds ``transforms.json``.
         downscale: integer factor the images are area-averaged by (intrinsics scaled).
         holdout_every: every k-th frame with an image (0, k, 2k, ...) is held out as val and test; 0 for none.
+            Ignored where the json names its splits (``train_filenames``, ``val_filenames``, ``test_filenames``).
         normalise: centre, orient and scale the world (see the module's docstring).
-        near, far: the sampling range along unit rays, in the normalised world.
+        near, far: the sampling range along unit rays, in the normalised world; far by default the diagonal
+            of the box of half-size ``aabb_scale`` (2 sqrt(3) aabb_scale), 4 without one.
         background: RGB that transparent pixels (RGBA images) are composited onto.
         max_views: keep at most this many training views, evenly spaced.
+        centre: where the normalised world's origin goes: ``focus``, ``poses`` or ``none`` (see the module's docstring).
+        world_from_capture: a (4, 4) similarity to use instead of normalising: another scene's
+            ``world_from_capture``, to load a second file of the same capture into that scene's world.
     """
     path = Path(root).expanduser()
     if path.is_dir():
@@ -172,20 +201,65 @@ def load_transforms(
     except ValueError as error:
         raise ValueError(f"{path}: every 'transform_matrix' must be a 4x4 list of numbers ({error})") from error
     c2w = validate_c2w(c2w, f"{path} 'transform_matrix'")
-    world_from_capture = normalising_transform(c2w) if normalise else torch.eye(4, dtype=torch.float64)
+    if world_from_capture is not None:
+        world_from_capture = torch.as_tensor(world_from_capture, dtype=torch.float64)
+        if world_from_capture.shape != (4, 4):
+            raise ValueError(f"load_transforms: world_from_capture must be 4x4, got {tuple(world_from_capture.shape)}")
+    elif normalise:
+        world_from_capture = normalising_transform(c2w, centre)
+    else:
+        world_from_capture = torch.eye(4, dtype=torch.float64)
     c2w = opengl_to_opencv(apply_similarity(world_from_capture, c2w)).float()
 
     height, width = images[0].shape[:2]
     views = Views(K=torch.stack(Ks), c2w=c2w, height=height, width=width, images=torch.stack(images), names=names)
-    count = len(views)
-    held = list(range(0, count, holdout_every)) if holdout_every else []
-    train = [i for i in range(count) if i not in held]
+    splits = _named_splits(meta, path, [str(frame["file_path"]) for _, frame, _ in present], views)
+    if splits is None:
+        count = len(views)
+        held = list(range(0, count, holdout_every)) if holdout_every else []
+        splits = {"train": [i for i in range(count) if i not in held]}
+        if held:
+            splits["val"] = splits["test"] = held
     if max_views:
-        train = [train[i] for i in evenly_spaced(len(train), max_views)]
-    splits = {"train": views.subset(train)}
-    if held:
-        splits["val"] = splits["test"] = views.subset(held)
+        splits["train"] = [splits["train"][i] for i in evenly_spaced(len(splits["train"]), max_views)]
+    aabb_scale = float(meta["aabb_scale"]) if "aabb_scale" in meta else None
+    if far is None:
+        far = 2.0 * math.sqrt(3.0) * aabb_scale if aabb_scale else 4.0
     return Scene(
-        splits=splits, near=near, far=far, background=torch.tensor(background, dtype=torch.float32), source=str(path),
-        world_from_capture=world_from_capture.float(), aabb_scale=float(meta["aabb_scale"]) if "aabb_scale" in meta else None,
+        splits={name: views.subset(index) for name, index in splits.items()}, near=near, far=far,
+        background=torch.tensor(background, dtype=torch.float32), source=str(path),
+        world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale,
     )
+
+
+def _named_splits(meta: dict, path: Path, file_paths: list[str], views: Views) -> dict[str, list[int]] | None:
+    """nerfstudio's ``<split>_filenames`` lists -> view indices of each split; None where the json names none."""
+    named = {split: meta[f"{split}_filenames"] for split in ("train", "val", "test") if f"{split}_filenames" in meta}
+    if not named:
+        return None
+    index_of = {}
+    for index, file_path in enumerate(file_paths):
+        index_of[file_path] = index_of[Path(file_path).as_posix().removeprefix("./")] = index
+    splits = {}
+    for split, filenames in named.items():
+        known = [index_of.get(str(name), index_of.get(Path(str(name)).as_posix().removeprefix("./"))) for name in filenames]
+        splits[split] = [index for index in known if index is not None]
+        if len(splits[split]) < len(filenames):
+            log.warning("%s: %d of the %d '%s_filenames' have no frame with an image", path, len(filenames) - len(splits[split]), len(filenames), split)
+    if not splits.get("train"):
+        raise ValueError(f"{path}: 'train_filenames' names no frame with an image (expected file_path values of its frames)")
+    return splits
+
+
+def transforms_meta(views: Views, file_paths: list[str], world_from_capture: torch.Tensor | None = None) -> dict:
+    """The inverse of :func:`load_transforms`: views as a ``transforms.json`` dict (per-frame intrinsics, OpenGL
+    ``transform_matrix``), mapped back to the capture's coordinates by the inverse of ``world_from_capture``."""
+    c2w = opengl_to_opencv(views.c2w.double())
+    if world_from_capture is not None:
+        c2w = apply_similarity(torch.linalg.inv(world_from_capture.double()), c2w)
+    frames = [
+        {"file_path": file_path, "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+         "transform_matrix": matrix.tolist()}
+        for file_path, K, matrix in zip(file_paths, views.K, c2w)
+    ]
+    return {"w": views.width, "h": views.height, "frames": frames}

@@ -1,4 +1,5 @@
-"""Lightning callbacks: snapshots of validation renders, PSNR history and curve, the run's config in checkpoints."""
+"""Lightning callbacks: snapshots of validation renders, PSNR history and curve, the run's config in checkpoints, a
+progress bar counted in optimiser steps."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ from typing import Any
 import imageio.v3 as iio
 import lightning as L
 import torch
+from lightning.pytorch.callbacks.progress.progress_bar import ProgressBar
 from lightning.pytorch.loggers import TensorBoardLogger
+from tqdm import tqdm
 
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import mse_to_psnr
@@ -142,6 +145,58 @@ class RunConfigInCheckpoint(L.Callback):
         checkpoint["nerf_lightning"] = {"kind": getattr(pl_module, "kind", type(pl_module).__name__), "config": self.config}
 
 
+class StepProgressBar(ProgressBar):
+    """One bar over the run's optimiser steps, with steps a second, the current training PSNR and the last
+    validation PSNR (Lightning's own bar counts "epochs", which here are the stretches between validations).
+    ``nerf-train`` uses it wherever ``trainer.enable_progress_bar`` is true."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._enabled = True
+        self.bar: tqdm | None = None
+
+    def disable(self) -> None:
+        self._enabled = False
+
+    def enable(self) -> None:
+        self._enabled = True
+
+    @property
+    def is_enabled(self) -> bool:
+        return self._enabled
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.is_enabled and trainer.is_global_zero:
+            total = trainer.max_steps if trainer.max_steps and trainer.max_steps > 0 else None
+            self.bar = tqdm(total=total, initial=trainer.global_step, unit="step", desc="training", dynamic_ncols=True, smoothing=0.05)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if self.bar is None:
+            return
+        self.bar.update(trainer.global_step - self.bar.n)
+        shown = {key.replace("/", " "): f"{float(value):.2f}" for key, value in trainer.progress_bar_metrics.items() if "psnr" in key}
+        self.bar.set_postfix(shown, refresh=False)
+
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.bar is not None:
+            self.bar.set_description_str("validating", refresh=True)
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.bar is not None:
+            self.bar.set_description_str("training", refresh=True)
+
+    def _close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._close()
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self._close()
+
+
 def history_psnr(history: dict[str, list[float]]) -> tuple[list[float], list[float]]:
     """The validation curve of a ``psnr_history.json``, falling back to the training curve."""
     if history.get("val_step"):
@@ -149,4 +204,4 @@ def history_psnr(history: dict[str, list[float]]) -> tuple[list[float], list[flo
     return history.get("train_step", []), history.get("train_psnr", [])
 
 
-__all__ = ["RunConfigInCheckpoint", "Snapshots", "history_psnr"]
+__all__ = ["RunConfigInCheckpoint", "Snapshots", "StepProgressBar", "history_psnr"]

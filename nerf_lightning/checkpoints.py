@@ -1,14 +1,37 @@
-"""Rebuilding a trained model from a nerf-train checkpoint alone."""
+"""Checkpoints: written whole or not at all, never with non-finite weights, and enough to rebuild a trained model."""
 
 from __future__ import annotations
 
+import io
+import logging
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
+
+from nerf_lightning.io import write_atomic
+
+log = logging.getLogger(__name__)
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Saves a checkpoint through a temporary file in the same folder and a rename, so that a crash or ``kill -9``
+    while saving leaves the previous checkpoint whole (Lightning's own writer may copy across file systems), and
+    never writes one whose weights are not finite: after a NaN or inf the last good checkpoint stays as it was."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: str | Path, storage_options: Any | None = None) -> None:
+        state = checkpoint.get("state_dict", {})
+        bad = next((name for name, value in state.items() if torch.is_tensor(value) and value.is_floating_point() and not bool(torch.isfinite(value).all())), None)
+        if bad is not None:
+            log.warning("not writing %s: its weights are not finite (%s); the last checkpoint written stays as it was", path, bad)
+            return
+        buffer = io.BytesIO()
+        torch.save(checkpoint, buffer)
+        write_atomic(path, buffer.getvalue())
 
 
 def run_dir_of(ckpt_path: str | Path) -> Path:

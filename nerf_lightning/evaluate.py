@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.data.formats.transforms import load_transforms
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.errors import ensure_writable, report_errors
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.render import render_views
 
@@ -43,6 +44,7 @@ def views_to_evaluate(model, config: dict, cfg: DictConfig) -> Views:
 
 def evaluate(cfg: DictConfig) -> dict:
     model, info = load_model(cfg.ckpt_path, kind="radiance_field", command="nerf-eval")
+    ensure_writable(cfg.output_dir, "output_dir")
     views = views_to_evaluate(model, info["config"], cfg)
     if cfg.max_views:
         views = views.subset(evenly_spaced(len(views), cfg.max_views))
@@ -74,6 +76,7 @@ def evaluate(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="eval")
+@report_errors("nerf-eval")
 def main(cfg: DictConfig) -> None:
     evaluate(cfg)
 

@@ -16,6 +16,7 @@ import torch
 from omegaconf import DictConfig
 
 from nerf_lightning.checkpoints import load_model
+from nerf_lightning.errors import ensure_writable, report_errors
 from nerf_lightning.geometry.rays import ndc_to_world
 from nerf_lightning.io import to_uint8, write_atomic
 
@@ -119,6 +120,7 @@ def to_capture(model, vertices: np.ndarray) -> np.ndarray:
 
 def export(cfg: DictConfig) -> Path:
     model, info = load_model(cfg.ckpt_path, kind="radiance_field", command="nerf-export")
+    ensure_writable(cfg.output_dir, "output_dir")
     if cfg.format not in ("ply", "obj"):
         raise ValueError(f"export format must be ply or obj, got '{cfg.format}'")
     if cfg.frame not in ("capture", "scene"):
@@ -141,6 +143,7 @@ def export(cfg: DictConfig) -> Path:
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="export")
+@report_errors("nerf-export")
 def main(cfg: DictConfig) -> None:
     export(cfg)
 

@@ -14,6 +14,7 @@ from tqdm import tqdm
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.data.formats.transforms import transforms_meta
 from nerf_lightning.data.scene import Views
+from nerf_lightning.errors import ensure_writable, report_errors
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.io import to_uint8, write_json, write_png
 from nerf_lightning.video import write_gif, write_mp4
@@ -88,12 +89,14 @@ RENDERERS = {"image_field": render_image_field, "radiance_field": render_radianc
 
 def render(cfg: DictConfig) -> list[Path]:
     model, info = load_model(cfg.ckpt_path)
+    ensure_writable(cfg.output_dir, "output_dir")
     if info["kind"] not in RENDERERS:
         raise ValueError(f"{cfg.ckpt_path} holds a model of kind '{info['kind']}'; nerf-render knows {sorted(RENDERERS)}")
     return RENDERERS[info["kind"]](model, cfg, Path(cfg.output_dir), info["config"])
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="render")
+@report_errors("nerf-render")
 def main(cfg: DictConfig) -> None:
     render(cfg)
 

@@ -12,7 +12,8 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from nerf_lightning.callbacks import RunConfigInCheckpoint
+from nerf_lightning.callbacks import RunConfigInCheckpoint, StepProgressBar
+from nerf_lightning.errors import ensure_writable, report_errors
 from nerf_lightning.io import write_json
 
 # Batches are drawn in the main process on purpose: workers would only copy the precomputed tensors.
@@ -22,7 +23,10 @@ warnings.filterwarnings("ignore", ".*isinstance\(treespec, LeafSpec\).*")
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Train the model ``cfg.model`` on ``cfg.data``; returns the final metrics also written to metrics.json."""
-    output_dir = Path(cfg.paths.output_dir)
+    output_dir = ensure_writable(cfg.paths.output_dir, "paths.output_dir")
+    ckpt_path = cfg.get("ckpt_path")
+    if ckpt_path and not Path(ckpt_path).expanduser().is_file():
+        raise FileNotFoundError(f"ckpt_path={ckpt_path} not found: expected a checkpoint of a run, such as <run>/checkpoints/last.ckpt")
     L.seed_everything(cfg.seed, workers=True, verbose=False)
 
     datamodule = instantiate(cfg.data)
@@ -30,11 +34,13 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
     callbacks.append(RunConfigInCheckpoint(resolved))
+    if cfg.trainer.get("enable_progress_bar", True):
+        callbacks.append(StepProgressBar())
     loggers = [instantiate(logger) for logger in (cfg.get("logger") or {}).values()]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
 
     started = time.perf_counter()
-    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     wall_seconds = time.perf_counter() - started
 
     metrics: dict[str, Any] = {key: float(value) for key, value in trainer.callback_metrics.items()}
@@ -45,8 +51,13 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
+@report_errors("nerf-train")
 def main(cfg: DictConfig) -> float | None:
     metrics = train(cfg)
+    run = Path(cfg.paths.output_dir)
+    shown = ", ".join(f"{key} {metrics[key]:.2f}" for key in ("val/psnr", "val/ssim") if key in metrics)
+    print(f"{run}: {metrics['step']} steps in {metrics['wall_seconds']:.0f} s{', ' + shown if shown else ''}; "
+          f"next: nerf-render ckpt_path={run / 'checkpoints' / 'last.ckpt'}")
     # a sweeper optimises the returned value
     return metrics.get("val/psnr")
 

@@ -10,6 +10,7 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from nerf_lightning.errors import report_errors
 from nerf_lightning.viz.plot import plot_cameras_and_rays
 from nerf_lightning.viz.rays_sample import draw_rays
 
@@ -36,6 +37,7 @@ def visualise(cfg: DictConfig) -> Path | object:
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="viz")
+@report_errors("nerf-viz-cameras")
 def main(cfg: DictConfig) -> None:
     result = visualise(cfg)
     if cfg.viz.backend == "viser":

@@ -7,8 +7,10 @@
 
 1. Trains ``experiment=<--preset>`` on ``--root`` for ``--minutes`` of wall time (validation on one view every
    ``--val-every`` steps, its time left out of the training seconds; extra Hydra overrides after ``--``).
-2. ``nerf-eval`` on its last checkpoint: PSNR and SSIM on every view of the held-out test split.
-3. ``nerf-render`` of the scene's spiral path (``--frames``), timed, and the GIFs' paths.
+2. ``nerf-eval`` on its last checkpoint: PSNR and SSIM on the views of the held-out test split (``--eval-views``
+   of them, evenly spaced, or all), timed.
+3. ``nerf-render`` of the scene's spiral path (``--frames`` at ``--render-scale``; an LLFF scene's own spiral has
+   ``data.scene.render_frames`` frames), timed, and the GIFs' paths.
 Writes the JSON (and the run folder beside it, or ``--run-dir``). Exits 0 with "skipped" when --root is missing.
 """
 
@@ -35,6 +37,8 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument("--val-every", type=int, default=500)
     parser.add_argument("--frames", type=int, default=60, help="frames of the spiral GIF")
+    parser.add_argument("--render-scale", type=float, default=1.0, help="render.scale of the spiral GIF")
+    parser.add_argument("--eval-views", type=int, default=None, help="evaluate this many held-out views, evenly spaced (default all)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--run-dir", type=Path, default=None)
     parser.add_argument("--out", type=Path, required=True)
@@ -49,13 +53,16 @@ def main() -> None:
     result = train_preset(args.preset, run_dir, args.root, None, args.minutes, args.val_every, 1, None, args.seed, False, args.overrides)
     ckpt = run_dir / "checkpoints" / "last.ckpt"
 
-    evaluated = evaluate(compose_config([f"ckpt_path={ckpt}", "split=test", f"output_dir={run_dir / 'eval'}"], config_name="eval"))
-    result["eval"] = {"views": evaluated["views"], "mean": evaluated["mean"], "per_view": evaluated["per_view"]}
+    started = time.perf_counter()
+    evaluated = evaluate(compose_config([f"ckpt_path={ckpt}", "split=test", f"max_views={args.eval_views or 'null'}",
+                                         f"output_dir={run_dir / 'eval'}"], config_name="eval"))
+    result["eval"] = {"views": evaluated["views"], "mean": evaluated["mean"], "per_view": evaluated["per_view"],
+                      "seconds_per_view": round((time.perf_counter() - started) / evaluated["views"], 2)}
 
     started = time.perf_counter()
-    render(compose_config([f"ckpt_path={ckpt}", "render.path=spiral", f"render.frames={args.frames}", f"output_dir={run_dir / 'spiral'}"],
-                          config_name="render"))
-    result["spiral"] = {"frames": args.frames, "seconds_per_frame": round((time.perf_counter() - started) / args.frames, 3),
+    render(compose_config([f"ckpt_path={ckpt}", "render.path=spiral", f"render.frames={args.frames}", f"render.scale={args.render_scale}",
+                           f"output_dir={run_dir / 'spiral'}"], config_name="render"))
+    result["spiral"] = {"frames": args.frames, "scale": args.render_scale, "seconds_per_frame": round((time.perf_counter() - started) / args.frames, 3),
                         "rgb_gif": str(run_dir / "spiral" / "rgb.gif"), "depth_gif": str(run_dir / "spiral" / "depth.gif")}
 
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -91,3 +91,32 @@ def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):
     saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
     assert saved["global_step"] > 5, "Ctrl-C lost the steps after the last validation"
     assert torch.load(run / "checkpoints" / "best.ckpt", weights_only=False)["global_step"] == 5
+
+
+def test_a_sweep_runs_its_jobs_in_parallel_processes(tmp_path):
+    sweep = tmp_path / "sweep"
+    result = run_cli("train", "-m", "hydra/launcher=parallel", *TINY, "trainer.max_steps=5", "data.val_steps=[]",
+                     "model.field.num_frequencies=2,6", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert "Joblib.Parallel" in result.stdout + result.stderr  # the joblib launcher ran the jobs, not the basic one
+    for job, level in (("0", 2), ("1", 6)):
+        assert json.loads((sweep / job / "metrics.json").read_text())["step"] == 5
+        assert yaml.safe_load((sweep / job / ".hydra" / "config.yaml").read_text())["model"]["field"]["num_frequencies"] == level
+
+
+def test_the_slurm_preset_composes_a_submitit_launcher(tmp_path):
+    result = run_cli("train", "hydra/launcher=slurm", "hydra.launcher.partition=gpu", *TINY, "--cfg", "hydra", cwd=tmp_path)
+    launcher = yaml.safe_load(result.stdout)["hydra"]["launcher"]
+    assert launcher["_target_"].endswith("SlurmLauncher") and launcher["partition"] == "gpu" and launcher["gpus_per_node"] == 1
+
+
+def test_an_optuna_search_runs_its_trials_and_reports_the_best(tmp_path):
+    import pytest
+
+    pytest.importorskip("hydra_plugins.hydra_optuna_sweeper", reason="the optional `optuna` extra is not installed")
+    sweep = tmp_path / "tune"
+    result = run_cli("train", "-m", "hydra/sweeper=tune", "hydra.sweeper.n_trials=3", *TINY, "trainer.max_steps=5", "data.val_steps=[]",
+                     "model.field.num_frequencies=range(2, 8)", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
+    assert "Best parameters" in result.stdout + result.stderr
+    trials = [json.loads((sweep / str(job) / "metrics.json").read_text())["val/psnr"] for job in range(3)]
+    best = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
+    assert best["best_value"] == max(trials)  # maximised: nerf-train returns val/psnr

@@ -11,7 +11,7 @@ from torch.utils.data import DataLoader
 from nerf_lightning.data.batches import StepBatchesDataModule
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
-from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.geometry.rays import image_rays, indexed_pixel_rays
 
 
 def view_batch(views: Views, index: int) -> dict[str, Any]:
@@ -30,8 +30,9 @@ class RayDataModule(StepBatchesDataModule):
     training view, with their colours; validation on a few whole held-out views; a render path.
 
     Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units) and ``rgb``
-    (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. The rays of all training pixels are
-    computed once, in :meth:`setup`.
+    (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. A batch's rays are computed from the
+    cameras of the pixels drawn (:func:`~nerf_lightning.geometry.rays.indexed_pixel_rays`), so memory holds the
+    training images and nothing per pixel besides.
 
     Args:
         scene: loads the :class:`Scene` (a Hydra ``_partial_`` of a loader such as ``load_blender``).
@@ -86,14 +87,13 @@ class RayDataModule(StepBatchesDataModule):
                 raise ValueError(f"data.ndc=true needs forward-facing cameras looking down -z (an LLFF capture), but {self.scene.source}'s "
                                  f"mean viewing direction is {[round(v, 3) for v in forward.tolist()]}")
             self.ndc_params = {"focal": float(train.K[0, 0, 0]), "width": train.width, "height": train.height, "near_plane": 1.0}
-        rays_o, rays_d = image_rays(train.K, train.c2w, train.height, train.width)
-        self.rays_o = rays_o.reshape(-1, 3)  # (N*H*W, 3)
-        self.rays_d = rays_d.reshape(-1, 3)
-        self.rgb = train.images.reshape(-1, 3)
+        self.rgb = train.images.reshape(-1, 3)  # (N*H*W, 3), a view of the images: no copy
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        train = self.scene.train
         index = torch.randint(0, self.rgb.shape[0], (self.batch_size,), generator=generator)
-        return {"rays_o": self.rays_o[index], "rays_d": self.rays_d[index], "rgb": self.rgb[index]}
+        rays_o, rays_d = indexed_pixel_rays(train.K, train.c2w, train.height, train.width, index)
+        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": self.rgb[index]}
 
     def validation_views(self) -> Views:
         held_out = self.scene.held_out(self.val_split)

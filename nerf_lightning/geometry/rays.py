@@ -20,6 +20,18 @@ def image_rays(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int) -> t
     return pixel_to_ray(K, c2w, uv)
 
 
+def indexed_pixel_rays(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays of chosen pixels of a stack of views: K (V, 3, 3), c2w (V, 4, 4), ``index`` (N,) into the views' pixels
+    flattened view by view, row-major (view * H * W + row * W + column) -> rays_o, rays_d (N, 3).
+
+    The same rays as :func:`image_rays` gives at those pixels, computed for a batch only, so that the rays of
+    all training pixels never have to be held in memory."""
+    view, pixel = index // (height * width), index % (height * width)
+    uv = torch.stack([pixel % width, pixel // width], dim=-1).to(K.dtype) + 0.5
+    rays_o, rays_d = pixel_to_ray(K[view], c2w[view], uv[:, None, :])
+    return rays_o[:, 0], rays_d[:, 0]
+
+
 def sample_along_rays(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,

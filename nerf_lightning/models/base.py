@@ -1,4 +1,5 @@
-"""What every model here shares: an optimiser and an optional per-step scheduler, both built from Hydra partials."""
+"""What every model here shares: an optimiser and an optional per-step scheduler, both built from Hydra partials; a
+stop on a non-finite loss; the random state in checkpoints, so a resumed run draws what the uninterrupted one would."""
 
 from __future__ import annotations
 
@@ -8,9 +9,15 @@ from typing import Any
 import lightning as L
 import torch
 
+from nerf_lightning.errors import NonFiniteLossError
+
 
 class FieldModule(L.LightningModule):
     """A LightningModule that builds its optimiser and learning-rate scheduler from factories.
+
+    A NaN or infinite training loss stops the run with :class:`~nerf_lightning.errors.NonFiniteLossError` before
+    it reaches the weights; the checkpoints keep the last finite weights. Checkpoints carry torch's random state
+    (CPU and CUDA), restored on resuming, so that stratified jitter continues as in an uninterrupted run.
 
     Args:
         optimizer: builds the optimiser from the parameters (a Hydra ``_partial_``).
@@ -29,3 +36,21 @@ class FieldModule(L.LightningModule):
         if self.make_scheduler is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.make_scheduler(optimizer=optimizer), "interval": "step"}}
+
+    def on_before_backward(self, loss: torch.Tensor) -> None:
+        if not bool(torch.isfinite(loss.detach())):
+            raise NonFiniteLossError(
+                f"step {self.global_step}: the training loss is {float(loss.detach())}; the run stops here and its last checkpoint keeps "
+                "the last finite weights. A lower model.optimizer.lr usually helps: start a new run with it (resuming restores "
+                "the optimiser with its old learning rate)"
+            )
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["rng_state"] = {"torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        state = checkpoint.get("rng_state")
+        if state:
+            torch.set_rng_state(state["torch"])
+            if state["cuda"] and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
+                torch.cuda.set_rng_state_all(state["cuda"])

@@ -76,11 +76,13 @@ class ImageFieldModule(FieldModule):
         rgb = self.render(batch["xy"]).reshape(height, width, 3)
         target = batch["rgb"].reshape(height, width, 3)
         psnr = kornia.metrics.psnr(rgb, target, max_val=1.0)
-        self.log("val/psnr", psnr, prog_bar=True, batch_size=1)
+        self.log("val/psnr", psnr, prog_bar=True, batch_size=1, sync_dist=True)
         return {"images": {"rgb": rgb, "target": target}}
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_save_checkpoint(checkpoint)
         checkpoint["image_size"] = self.image_size
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
         self.image_size = tuple(checkpoint["image_size"]) if checkpoint.get("image_size") else None

@@ -146,21 +146,23 @@ class RadianceFieldModule(FieldModule):
         out = self.render_chunked(batch["rays_o"], batch["rays_d"])
         rgb = out["rgb"].reshape(height, width, 3)
         target = batch["rgb"].reshape(height, width, 3)
-        self.log("val/psnr", kornia.metrics.psnr(rgb, target, max_val=1.0), prog_bar=True, batch_size=1)
+        self.log("val/psnr", kornia.metrics.psnr(rgb, target, max_val=1.0), prog_bar=True, batch_size=1, sync_dist=True)
         ssim = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11).mean()
-        self.log("val/ssim", ssim, batch_size=1)
+        self.log("val/ssim", ssim, batch_size=1, sync_dist=True)
         if "depth" in batch:
             surface = torch.isfinite(batch["depth"])
             if surface.any():
-                self.log("val/depth_error", (out["depth"][surface] - batch["depth"][surface]).abs().mean(), batch_size=1)
+                self.log("val/depth_error", (out["depth"][surface] - batch["depth"][surface]).abs().mean(), batch_size=1, sync_dist=True)
         depth = self.depth_image(out["depth"]) * out["accumulation"]
         return {"images": {"rgb": rgb, "depth": depth.reshape(height, width), "target": target}}
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_save_checkpoint(checkpoint)
         world_from_capture = None if self.world_from_capture is None else self.world_from_capture.tolist()
         checkpoint["scene_bounds"] = {"near": self.near, "far": self.far, "ndc": self.ndc, "world_from_capture": world_from_capture}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
         bounds = checkpoint.get("scene_bounds")
         if bounds:
             self.near, self.far = float(bounds["near"]), float(bounds["far"])

@@ -66,3 +66,14 @@ def test_generated_render_paths_look_at_the_scene(rays, path):
 def test_test_render_path_uses_the_test_cameras(rays, procedural_scene):
     views = rays.render_views("test")
     assert torch.equal(views.c2w, procedural_scene.splits["test"].c2w)
+
+
+def test_rays_of_drawn_pixels_equal_the_rays_of_their_whole_images(procedural_scene):
+    from nerf_lightning.geometry.rays import image_rays, indexed_pixel_rays
+
+    views = procedural_scene.train.subset([0, 5, 9])
+    every_o, every_d = (rays.reshape(-1, 3) for rays in image_rays(views.K, views.c2w, views.height, views.width))
+    index = torch.randint(0, len(views) * views.height * views.width, (500,), generator=torch.Generator().manual_seed(0))
+    rays_o, rays_d = indexed_pixel_rays(views.K, views.c2w, views.height, views.width, index)
+    torch.testing.assert_close(rays_o, every_o[index])
+    torch.testing.assert_close(rays_d, every_d[index])

@@ -126,3 +126,18 @@ def test_fox_loads_its_50_images_of_67_frames(caplog):
     assert any("17 of 67 frames have no image file" in r.getMessage() for r in caplog.records)
     assert len(scene.train) + len(scene.splits["val"]) == 50 and (scene.train.height, scene.train.width) == (240, 135)
     assert float(scene.train.K[0, 0, 0]) == pytest.approx(1375.52 / 8) and scene.aabb_scale == 4
+
+
+def test_nerfstudio_split_filenames_choose_the_splits(procedural_scene, tmp_path, caplog):
+    views = procedural_scene.train.subset(list(range(6)))
+    root = write_transforms(views, tmp_path / "capture")
+    meta = json.loads((root / "transforms.json").read_text())
+    meta.update(train_filenames=["images/0000.png", "./images/0002.png", "images/0004.png", "images/0005.png"],
+                val_filenames=["images/0001.png", "images/gone.png"], test_filenames=["images/0003.png"])
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING):
+        scene = load_transforms(root, holdout_every=2, normalise=False)  # the named splits win over holdout_every
+    assert scene.train.names == ["0000.png", "0002.png", "0004.png", "0005.png"]
+    assert scene.splits["val"].names == ["0001.png"] and scene.splits["test"].names == ["0003.png"]
+    assert any("1 of the 2 'val_filenames' have no frame with an image" in r.getMessage() for r in caplog.records)
+    torch.testing.assert_close(scene.splits["test"].c2w, views.c2w[3:4], atol=1e-5, rtol=0)

@@ -213,7 +213,7 @@ def load_transforms(
 
     height, width = images[0].shape[:2]
     views = Views(K=torch.stack(Ks), c2w=c2w, height=height, width=width, images=torch.stack(images), names=names)
-    splits = _named_splits(meta, path, [str(frame["file_path"]) for _, frame, _ in present], views)
+    splits = _named_splits(meta, path, [str(frame["file_path"]) for _, frame, _ in present])
     if splits is None:
         count = len(views)
         held = list(range(0, count, holdout_every)) if holdout_every else []
@@ -232,7 +232,7 @@ def load_transforms(
     )
 
 
-def _named_splits(meta: dict, path: Path, file_paths: list[str], views: Views) -> dict[str, list[int]] | None:
+def _named_splits(meta: dict, path: Path, file_paths: list[str]) -> dict[str, list[int]] | None:
     """nerfstudio's ``<split>_filenames`` lists -> view indices of each split; None where the json names none."""
     named = {split: meta[f"{split}_filenames"] for split in ("train", "val", "test") if f"{split}_filenames" in meta}
     if not named:

@@ -11,6 +11,7 @@ import logging
 from pathlib import Path
 
 import hydra
+import kornia
 import numpy as np
 import torch
 from omegaconf import DictConfig
@@ -114,7 +115,7 @@ def to_capture(model, vertices: np.ndarray) -> np.ndarray:
         points = ndc_to_world(points, model.ndc["focal"], model.ndc["width"], model.ndc["height"], model.ndc["near_plane"])
     if model.world_from_capture is not None:
         capture_from_world = torch.linalg.inv(model.world_from_capture.double())
-        points = points @ capture_from_world[:3, :3].T + capture_from_world[:3, 3]
+        points = kornia.geometry.transform_points(capture_from_world[None], points[None])[0]
     return points.numpy()
 
 

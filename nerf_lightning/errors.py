@@ -64,5 +64,5 @@ def ensure_writable(folder: str | Path, key: str) -> Path:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as error:
-        raise PermissionError(f"cannot write to the output folder {folder} ({error.strerror or error}); choose another with {key}=...") from error
+        raise PermissionError(f"cannot write to the folder {folder} ({error.strerror or error}); choose another with {key}=...") from error
     return folder

@@ -17,6 +17,7 @@ from omegaconf import DictConfig
 
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.data.formats.transforms import load_transforms
+from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.errors import ensure_writable, report_errors
 from nerf_lightning.io import write_json, write_png
@@ -52,7 +53,7 @@ def evaluate(cfg: DictConfig) -> dict:
     rendered = render_views(model, views, desc=f"evaluating {len(views)} views")
     per_view = []
     for index, frame in enumerate(rendered):
-        target = views.images[index]
+        target = as_float_rgb(views.images[index])
         row = {
             "view": views.names[index],
             "psnr": float(kornia.metrics.psnr(frame["rgb"], target, max_val=1.0)),

@@ -43,7 +43,9 @@ def write_json(path: str | Path, payload: Any) -> Path:
 
 
 def to_uint8(image: torch.Tensor) -> np.ndarray:
-    """(H, W, 3) or (H, W) floats in [0, 1] -> uint8 array, rounded."""
+    """(H, W, 3) or (H, W) floats in [0, 1] -> uint8 array, rounded; uint8 passes through."""
+    if image.dtype == torch.uint8:
+        return image.detach().cpu().numpy()
     return (image.detach().float().clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
 
 

@@ -36,6 +36,7 @@ from bench_nerf import train_preset  # noqa: E402
 
 from nerf_lightning.checkpoints import load_model  # noqa: E402
 from nerf_lightning.data.formats import load_blender  # noqa: E402
+from nerf_lightning.data.image_stack import as_float_rgb  # noqa: E402
 from nerf_lightning.data.scene import evenly_spaced  # noqa: E402
 from nerf_lightning.geometry.rays import image_rays  # noqa: E402
 from nerf_lightning.plots import plot_psnr_curves  # noqa: E402
@@ -59,7 +60,7 @@ def evaluate_fast(ckpt: Path, root: Path, views: int) -> dict:
         out = model.render_chunked(rays_o, rays_d)
         seconds.append(time.perf_counter() - started)
         rgb = out["rgb"].reshape(val.height, val.width, 3)
-        target = val.images[index]
+        target = as_float_rgb(val.images[index])
         psnrs.append(float(kornia.metrics.psnr(rgb, target, max_val=1.0)))
         ssims.append(float(kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11).mean()))
         for o, d in zip(rays_o.split(model.chunk_size), rays_d.split(model.chunk_size)):

@@ -33,9 +33,10 @@ def without_clock(metrics: dict) -> dict:
     return {key: value for key, value in metrics.items() if key != "wall_seconds"}
 
 
-def test_the_same_seed_gives_the_same_metrics(cached_scene, tmp_path):
+def test_the_same_seed_gives_the_same_metrics_from_memory_or_memory_mapped_images(cached_scene, tmp_path):
     first = train(compose_config([*SMALL_FAST, f"paths.output_dir={tmp_path / 'a'}"]))
-    second = train(compose_config([*SMALL_FAST, f"paths.output_dir={tmp_path / 'b'}"]))
+    second = train(compose_config([*SMALL_FAST, f"data.scene.image_cache={tmp_path / 'images'}", f"paths.output_dir={tmp_path / 'b'}"]))
+    assert len(list((tmp_path / "images").glob("*.u8"))) == 3  # train, val and test were mapped from files
     saved = [json.loads((tmp_path / run / "metrics.json").read_text()) for run in ("a", "b")]
     assert without_clock(saved[0]) == without_clock(saved[1]) and without_clock(first) == without_clock(second)
     histories = [json.loads((tmp_path / run / "psnr_history.json").read_text()) for run in ("a", "b")]

@@ -1,6 +1,7 @@
 """Reading images and the built-in test image.
 
-Images are float tensors (H, W, 3) in [0, 1] throughout the project.
+An image is read as a float tensor (H, W, 3) in [0, 1]; a scene's views keep theirs as uint8
+(:mod:`~nerf_lightning.data.image_stack`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,15 @@ def load_image(path: str | Path, background: tuple[float, float, float] = (1.0, 
         alpha = image[..., 3:]
         image = image[..., :3] * alpha + torch.tensor(background) * (1.0 - alpha)
     return image.contiguous()
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(height, width) of a PNG or JPG read from its header, without decoding the pixels."""
+    try:
+        shape = iio.improps(path).shape
+    except Exception as error:  # imageio raises many types for corrupt or truncated files
+        raise ValueError(f"could not read image {path}: {error}") from error
+    return int(shape[0]), int(shape[1])
 
 
 def downscale(image: torch.Tensor, factor: int) -> torch.Tensor:

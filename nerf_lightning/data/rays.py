@@ -9,6 +9,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from nerf_lightning.data.batches import StepBatchesDataModule
+from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
 from nerf_lightning.geometry.rays import image_rays, indexed_pixel_rays
@@ -19,7 +20,7 @@ def view_batch(views: Views, index: int) -> dict[str, Any]:
     rays_o, rays_d = image_rays(views.K[index : index + 1], views.c2w[index : index + 1], views.height, views.width)
     batch: dict[str, Any] = {"rays_o": rays_o[0], "rays_d": rays_d[0], "height": views.height, "width": views.width, "index": index}
     if views.images is not None:
-        batch["rgb"] = views.images[index].reshape(-1, 3)
+        batch["rgb"] = as_float_rgb(views.images[index].reshape(-1, 3))
     if views.depth is not None:
         batch["depth"] = views.depth[index].reshape(-1)
     return batch
@@ -31,8 +32,9 @@ class RayDataModule(StepBatchesDataModule):
 
     Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units) and ``rgb``
     (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. A batch's rays are computed from the
-    cameras of the pixels drawn (:func:`~nerf_lightning.geometry.rays.indexed_pixel_rays`), so memory holds the
-    training images and nothing per pixel besides.
+    cameras of the pixels drawn (:func:`~nerf_lightning.geometry.rays.indexed_pixel_rays`) and their colours
+    converted from the uint8 images, so memory holds the training images (or, with
+    ``data.scene.image_cache``, maps them from disk) and nothing per pixel besides.
 
     Args:
         scene: loads the :class:`Scene` (a Hydra ``_partial_`` of a loader such as ``load_blender``).
@@ -87,13 +89,13 @@ class RayDataModule(StepBatchesDataModule):
                 raise ValueError(f"data.ndc=true needs forward-facing cameras looking down -z (an LLFF capture), but {self.scene.source}'s "
                                  f"mean viewing direction is {[round(v, 3) for v in forward.tolist()]}")
             self.ndc_params = {"focal": float(train.K[0, 0, 0]), "width": train.width, "height": train.height, "near_plane": 1.0}
-        self.rgb = train.images.reshape(-1, 3)  # (N*H*W, 3), a view of the images: no copy
+        self.rgb = train.images.reshape(-1, 3)  # (N*H*W, 3) uint8, a view of the images (in memory or mapped): no copy
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
         train = self.scene.train
         index = torch.randint(0, self.rgb.shape[0], (self.batch_size,), generator=generator)
         rays_o, rays_d = indexed_pixel_rays(train.K, train.c2w, train.height, train.width, index)
-        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": self.rgb[index]}
+        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(self.rgb[index])}
 
     def validation_views(self) -> Views:
         held_out = self.scene.held_out(self.val_split)

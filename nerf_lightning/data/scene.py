@@ -15,8 +15,9 @@ class Views:
         K: (N, 3, 3) intrinsics in pixels.
         c2w: (N, 4, 4) camera-to-world.
         height, width: image size in pixels.
-        images: (N, H, W, 3) float RGB in [0, 1], composited onto the scene's background; None for cameras
-            only (a render path).
+        images: (N, H, W, 3) RGB composited onto the scene's background: uint8 0..255 (what the loaders give; possibly
+            memory-mapped, see :mod:`~nerf_lightning.data.image_stack`) or float in [0, 1] (views made in code);
+            :func:`~nerf_lightning.data.image_stack.as_float_rgb` reads either. None for cameras only (a render path).
         depth: (N, H, W) true distance along each pixel's unit ray to the first surface, inf where the ray
             hits nothing; None where unknown.
         names: one name per view (its file), for messages and outputs.
@@ -45,15 +46,24 @@ class Views:
         return int(self.c2w.shape[0])
 
     def subset(self, index: torch.Tensor | list[int]) -> Views:
-        """The views at ``index``, in that order."""
+        """The views at ``index``, in that order. A run of consecutive indices slices the images instead of
+        copying them, so a split of memory-mapped images stays mapped."""
         index = torch.as_tensor(index, dtype=torch.long)
+        start = int(index[0]) if len(index) else 0
+        consecutive = start >= 0 and torch.equal(index, torch.arange(start, start + len(index)))
+
+        def take(values: torch.Tensor | None) -> torch.Tensor | None:
+            if values is None:
+                return None
+            return values[start : start + len(index)] if consecutive else values[index]
+
         return Views(
             K=self.K[index],
             c2w=self.c2w[index],
             height=self.height,
             width=self.width,
-            images=None if self.images is None else self.images[index],
-            depth=None if self.depth is None else self.depth[index],
+            images=take(self.images),
+            depth=take(self.depth),
             names=[self.names[int(i)] for i in index],
         )
 

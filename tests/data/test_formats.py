@@ -32,9 +32,10 @@ def test_procedural_scene_depth_lies_on_the_analytic_surface(procedural_scene):
         points, hit = surface_points(views, views.depth)
         assert hit.float().mean() > 0.15  # the objects fill a good part of each view
         assert surface_distance(points[hit]).abs().max() < 1e-3
-        # pixels without a surface are the white background
+        # pixels without a surface are the white background, kept as uint8
+        assert views.images.dtype == torch.uint8
         rgb = views.images.reshape(len(views), -1, 3)
-        torch.testing.assert_close(rgb[~hit], torch.ones_like(rgb[~hit]))
+        assert (rgb[~hit] == 255).all()
 
 
 def test_procedural_scene_is_deterministic_and_cached(procedural_scene, scene_cache, tmp_path):
@@ -61,7 +62,7 @@ def test_npz_round_trip_and_its_convention(procedural_scene, tmp_path, conventio
     scene = load_npz(path)  # convention=auto
     torch.testing.assert_close(scene.train.c2w, procedural_scene.train.c2w)
     torch.testing.assert_close(scene.train.K, procedural_scene.train.K)
-    assert torch.equal((scene.train.images * 255).round(), (procedural_scene.train.images * 255).round())
+    assert torch.equal(scene.train.images, procedural_scene.train.images)  # uint8 both ways
     # the rays of the loaded cameras meet the true surface at the true depth
     points, hit = surface_points(scene.train.subset([0, 1, 2]), procedural_scene.train.depth[:3])
     assert surface_distance(points[hit]).abs().max() < 1e-3
@@ -105,7 +106,7 @@ def test_blender_options(procedural_scene, scene_cache, tmp_path):
     torch.testing.assert_close(half.train.K[0, 0, 0], procedural_scene.train.K[0, 0, 0] / 2)
     assert half.train.depth is None  # true depth is kept at full size only
     black = load_blender(root, background=(0.0, 0.0, 0.0), max_views=3)
-    assert black.train.images[0, 0, 0].tolist() == [0.0, 0.0, 0.0]
+    assert black.train.images[0, 0, 0].tolist() == [0, 0, 0]
 
 
 def test_blender_bad_input_names_file_and_key(scene_cache, tmp_path):
@@ -138,7 +139,7 @@ def test_lego_at_200x200():
     focal = 0.5 * 800 / math.tan(0.5 * 0.6911112070083618) / 4
     assert scene.train.K[0, 0, 0].item() == pytest.approx(focal, rel=1e-5)
     assert scene.train.K[0, 0, 2].item() == 100.0
-    assert torch.equal(scene.train.images[:, 0, 0], torch.ones(5, 3))  # corners: background, composited white
+    assert (scene.train.images[:, 0, 0] == 255).all()  # corners: background, composited white
     assert scene.splits["test"] is scene.splits["val"]  # lego here has no test split
     radius = scene.train.c2w[:, :3, 3].norm(dim=-1)
     torch.testing.assert_close(radius, torch.full_like(radius, 4.031), atol=0.01, rtol=0)

@@ -27,7 +27,7 @@ def test_training_batches(rays, procedural_scene):
     uv = camera.project((batch["rays_o"] + 3.0 * batch["rays_d"])[:, None])[:, 0]
     torch.testing.assert_close(uv - uv.floor(), torch.full_like(uv, 0.5), atol=1e-3, rtol=0)  # pixel centres
     rows, cols = uv[:, 1].long(), uv[:, 0].long()
-    torch.testing.assert_close(batch["rgb"], train.images[view, rows, cols])
+    torch.testing.assert_close(batch["rgb"], train.images[view, rows, cols].float() / 255)  # the uint8 pixel, as floats
 
 
 def test_rays_are_drawn_uniformly_over_all_views(rays, procedural_scene):
@@ -50,7 +50,7 @@ def test_validation_batches_are_whole_held_out_views(rays, procedural_scene):
     for index, batch in enumerate(batches):
         assert batch["rays_o"].shape == (100 * 100, 3) and batch["rgb"].shape == (100 * 100, 3)
         assert (batch["height"], batch["width"], batch["index"]) == (100, 100, index)
-        torch.testing.assert_close(batch["rgb"].reshape(100, 100, 3), views.images[index])
+        torch.testing.assert_close(batch["rgb"].reshape(100, 100, 3), views.images[index].float() / 255)
         torch.testing.assert_close(batch["depth"].reshape(100, 100), views.depth[index])
 
 

@@ -9,6 +9,7 @@ import torch
 
 from nerf_lightning.data.formats import load_transforms
 from nerf_lightning.data.formats.transforms import apply_similarity
+from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 from nerf_lightning.geometry.paths import look_at_point
 from nerf_lightning.geometry.rays import image_rays
@@ -48,7 +49,7 @@ def test_transforms_round_trip_skips_missing_frames_with_one_warning(procedural_
     assert len(loaded) == 10 and scene.aabb_scale == 2
     torch.testing.assert_close(loaded.K, views.K)
     torch.testing.assert_close(loaded.c2w, views.c2w, atol=1e-5, rtol=0)
-    torch.testing.assert_close(loaded.images, views.images, atol=1 / 255, rtol=0)
+    assert torch.equal(loaded.images, views.images)  # uint8, through 8-bit PNG
     for got, want in zip(image_rays(loaded.K, loaded.c2w, 100, 100), image_rays(views.K, views.c2w, 100, 100)):
         torch.testing.assert_close(got, want, atol=1e-4, rtol=0)
 
@@ -79,7 +80,7 @@ def test_transforms_normalisation_is_kept_to_map_back(procedural_scene, tmp_path
 def test_transforms_undistorts_a_distorted_capture(procedural_scene, tmp_path):
     views = procedural_scene.train.subset([5])
     # smoothed, so that resampling it twice costs little and what remains measures where the pixels went
-    clean = kornia.filters.gaussian_blur2d(views.images[0].permute(2, 0, 1)[None], (9, 9), (2.0, 2.0))[0].permute(1, 2, 0)
+    clean = kornia.filters.gaussian_blur2d(as_float_rgb(views.images[0]).permute(2, 0, 1)[None], (9, 9), (2.0, 2.0))[0].permute(1, 2, 0)
     K = views.K[0]
     distortion = torch.tensor([0.4, -0.1, 0.004, -0.002])  # up to about 4 pixels at the corners of this 50-degree view
     # the image a lens with this distortion takes: each of its pixels sees the clean image at its undistorted point
@@ -88,7 +89,7 @@ def test_transforms_undistorts_a_distorted_capture(procedural_scene, tmp_path):
     grid = (ideal / 99.0 * 2.0 - 1.0).reshape(1, 100, 100, 2)
     distorted = torch.nn.functional.grid_sample(clean.permute(2, 0, 1)[None], grid, align_corners=True)[0].permute(1, 2, 0)
     root = write_transforms(views, tmp_path / "capture", images=[distorted], distortion=distortion.tolist())
-    loaded = load_transforms(root, holdout_every=0, normalise=False).train.images[0]
+    loaded = as_float_rgb(load_transforms(root, holdout_every=0, normalise=False).train.images[0])
     inner = (slice(12, -12), slice(12, -12))
     error_before = (distorted[inner] - clean[inner]).abs().mean()
     error_after = (loaded[inner] - clean[inner]).abs().mean()

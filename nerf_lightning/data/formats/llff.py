@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import load_image
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
@@ -107,6 +108,7 @@ def load_llff(
     far: float | None = None,
     render_frames: int = 120,
     max_views: int | None = None,
+    image_cache: str | None = None,
 ) -> Scene:
     """An LLFF capture.
 
@@ -120,6 +122,8 @@ def load_llff(
         near, far: the sampling range; by default 0.9 x the smallest bound and the largest bound.
         render_frames: frames of the ``spiral`` split.
         max_views: keep at most this many training views, evenly spaced.
+        image_cache: a folder to memory-map the decoded images from (written on first use; see
+            :mod:`~nerf_lightning.data.image_stack`); None keeps them in memory.
     """
     root = Path(root).expanduser()
     if not root.is_dir():
@@ -132,11 +136,14 @@ def load_llff(
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(files) != len(c2w):
         raise ValueError(f"{folder} has {len(files)} images but {root / 'poses_bounds.npy'} has {len(c2w)} poses: expected one image a pose")
-    images = [load_image(path) for path in files]
-    height, width = images[0].shape[:2]
-    for path, image in zip(files, images):
-        if image.shape != images[0].shape:
-            raise ValueError(f"{path} is {image.shape[1]}x{image.shape[0]} but {files[0].name} is {width}x{height}: all images must have one size")
+    count = len(files)
+    held = list(range(0, count, holdout_every)) if holdout_every else []
+    train = [i for i in range(count) if i not in held]
+    if max_views:
+        train = [train[i] for i in evenly_spaced(len(train), max_views)]
+    order = train + held  # each split's views in a row: both splits are slices of one image stack
+    images = stack_images([files[i] for i in order], load_image, cache=image_cache, label=f"{root.name}-{folder.name}", recipe={"loader": "llff"})
+    height, width = images.shape[1:3]
     full_height, full_width, full_focal = hwf[0]
     scale_x, scale_y = full_width / width, full_height / height
     if abs(scale_x - scale_y) > 0.02 * scale_x:
@@ -158,18 +165,13 @@ def load_llff(
     def to_opencv(matrices: np.ndarray, source: str) -> torch.Tensor:
         return opengl_to_opencv(validate_c2w(torch.from_numpy(_homogeneous(matrices)), source)).float()
 
-    cameras = to_opencv(c2w, f"{root / 'poses_bounds.npy'}")
-    count = len(cameras)
+    cameras = to_opencv(c2w, f"{root / 'poses_bounds.npy'}")[order]
     K = torch.tensor([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
-    views = Views(K=K.expand(count, 3, 3).clone(), c2w=cameras, height=height, width=width, images=torch.stack(images),
-                  names=[path.name for path in files])
-    held = list(range(0, count, holdout_every)) if holdout_every else []
-    train = [i for i in range(count) if i not in held]
-    if max_views:
-        train = [train[i] for i in evenly_spaced(len(train), max_views)]
-    splits = {"train": views.subset(train)}
+    views = Views(K=K.expand(len(order), 3, 3).clone(), c2w=cameras, height=height, width=width, images=images,
+                  names=[files[i].name for i in order])
+    splits = {"train": views.subset(list(range(len(train))))}
     if held:
-        splits["val"] = splits["test"] = views.subset(held)
+        splits["val"] = splits["test"] = views.subset(list(range(len(train), len(order))))
     splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
     near = float(bounds.min() * 0.9) if near is None else near
     far = float(bounds.max()) if far is None else far

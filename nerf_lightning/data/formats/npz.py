@@ -37,7 +37,7 @@ def _images(array: np.ndarray, key: str, path: Path) -> torch.Tensor:
     if array.ndim != 4 or array.shape[-1] != 3:
         raise ValueError(f"{path}: '{key}' has shape {array.shape}; expected (N, H, W, 3)")
     if array.dtype == np.uint8:
-        return torch.from_numpy(array.astype(np.float32) / 255.0)
+        return torch.from_numpy(array)  # kept as uint8, as the scene's other loaders keep theirs
     images = torch.from_numpy(array.astype(np.float32))
     if images.min() < 0 or images.max() > 1:
         raise ValueError(f"{path}: float '{key}' must be in [0, 1] (got {float(images.min()):.3g}..{float(images.max()):.3g}); store uint8 for 0..255")

@@ -186,9 +186,10 @@ def load_procedural(
     max_views: int | None = None,
     near: float = 2.0,
     far: float = 6.0,
+    image_cache: str | Path | None = None,
 ) -> Scene:
     """The procedural scene, rendered into the cache on first use (``NERF_LIGHTNING_CACHE``, default
-    ~/.cache/nerf_lightning) and loaded by the Blender loader."""
+    ~/.cache/nerf_lightning) and loaded by the Blender loader (``image_cache`` as there)."""
     root = Path(cache_dir or default_cache()) / f"procedural_v{VERSION}_{n_views}views_{size}px"
     if not (root / "scene.json").is_file():
         root.parent.mkdir(parents=True, exist_ok=True)
@@ -202,4 +203,4 @@ def load_procedural(
                     raise
         finally:
             shutil.rmtree(staging, ignore_errors=True)
-    return load_blender(root, downscale=downscale, max_views=max_views, near=near, far=far)
+    return load_blender(root, downscale=downscale, max_views=max_views, near=near, far=far, image_cache=image_cache)

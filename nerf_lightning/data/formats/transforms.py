@@ -30,7 +30,8 @@ import numpy as np
 import torch
 
 from nerf_lightning.data.images import downscale as downscale_image
-from nerf_lightning.data.images import load_image
+from nerf_lightning.data.image_stack import stack_images
+from nerf_lightning.data.images import image_size, load_image
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 from nerf_lightning.geometry.paths import look_at_point
@@ -113,7 +114,8 @@ def normalising_transform(c2w: torch.Tensor, centre: str = "focus") -> torch.Ten
         rotation = torch.eye(3, dtype=torch.float64) + skew + skew @ skew / (1.0 + cosine)
     transform = torch.eye(4, dtype=torch.float64)
     transform[:3, :3], transform[:3, 3] = rotation, -rotation @ centre_point
-    scale = 1.0 / float((transform[:3, :3] @ c2w[:, :3, 3].T + transform[:3, 3:]).abs().max())
+    reach = float((transform[:3, :3] @ c2w[:, :3, 3].T + transform[:3, 3:]).abs().max())
+    scale = 1.0 / reach if reach > 1e-9 else 1.0  # cameras all at the centre (one camera): nothing to scale by
     return torch.diag(torch.tensor([scale, scale, scale, 1.0], dtype=torch.float64)) @ transform
 
 
@@ -138,6 +140,7 @@ def load_transforms(
     max_views: int | None = None,
     centre: str = "focus",
     world_from_capture: torch.Tensor | list | None = None,
+    image_cache: str | None = None,
 ) -> Scene:
     """A ``transforms.json`` capture (instant-ngp or nerfstudio).
 
@@ -154,6 +157,8 @@ def load_transforms(
         centre: where the normalised world's origin goes: ``focus``, ``poses`` or ``none`` (see the module's docstring).
         world_from_capture: a (4, 4) similarity to use instead of normalising: another scene's
             ``world_from_capture``, to load a second file of the same capture into that scene's world.
+        image_cache: a folder to memory-map the decoded images from (written on first use; see
+            :mod:`~nerf_lightning.data.image_stack`); None keeps them in memory.
     """
     path = Path(root).expanduser()
     if path.is_dir():
@@ -183,21 +188,15 @@ def load_transforms(
     if not present:
         raise FileNotFoundError(f"{path}: none of its {len(frames)} frames has an image file (first: {frames[0]['file_path']})")
 
-    images, Ks, matrices, names = [], [], [], []
-    for index, frame, image_path in present:
-        where = f"frame {index} ({frame['file_path']}): "
-        image = load_image(image_path, background=background)
-        K, distortion = frame_intrinsics(frame, meta, image.shape[1], image.shape[0], path, where)
+    lenses = {}  # image path -> K, distortion; from the images' headers, before anything is decoded
+    for number, frame, image_path in present:
+        height, width = image_size(image_path)
+        K, distortion = frame_intrinsics(frame, meta, width, height, path, f"frame {number} ({frame['file_path']}): ")
         K[:2] /= downscale  # downscale first, then undistort the smaller image: the distortion is in normalised coordinates
-        image = undistort(downscale_image(image, downscale), K, distortion)
-        if images and image.shape != images[0].shape:
-            raise ValueError(f"{image_path} is {image.shape[1]}x{image.shape[0]} but {names[0]} is {images[0].shape[1]}x{images[0].shape[0]}: all images must have one size")
-        images.append(image)
-        Ks.append(K)
-        matrices.append(frame["transform_matrix"])
-        names.append(image_path.name)
+        lenses[image_path] = (K, distortion)
+
     try:
-        c2w = torch.tensor(np.asarray(matrices, dtype=np.float64))
+        c2w = torch.tensor(np.asarray([frame["transform_matrix"] for _, frame, _ in present], dtype=np.float64))
     except ValueError as error:
         raise ValueError(f"{path}: every 'transform_matrix' must be a 4x4 list of numbers ({error})") from error
     c2w = validate_c2w(c2w, f"{path} 'transform_matrix'")
@@ -211,22 +210,32 @@ def load_transforms(
         world_from_capture = torch.eye(4, dtype=torch.float64)
     c2w = opengl_to_opencv(apply_similarity(world_from_capture, c2w)).float()
 
-    height, width = images[0].shape[:2]
-    views = Views(K=torch.stack(Ks), c2w=c2w, height=height, width=width, images=torch.stack(images), names=names)
     splits = _named_splits(meta, path, [str(frame["file_path"]) for _, frame, _ in present])
     if splits is None:
-        count = len(views)
-        held = list(range(0, count, holdout_every)) if holdout_every else []
-        splits = {"train": [i for i in range(count) if i not in held]}
+        held = list(range(0, len(present), holdout_every)) if holdout_every else []
+        splits = {"train": [i for i in range(len(present)) if i not in held]}
         if held:
             splits["val"] = splits["test"] = held
     if max_views:
         splits["train"] = [splits["train"][i] for i in evenly_spaced(len(splits["train"]), max_views)]
+    # the frames the splits use, each split's in a row, so that every split is a slice of one image stack
+    order = list(dict.fromkeys(index for indices in splits.values() for index in indices))
+    position = {index: row for row, index in enumerate(order)}
+
+    def decode(image_path: Path) -> torch.Tensor:
+        return undistort(downscale_image(load_image(image_path, background=background), downscale), *lenses[image_path])
+
+    image_paths = [present[index][2] for index in order]
+    images = stack_images(image_paths, decode, cache=image_cache, label=path.parent.name,
+                          recipe={"loader": "transforms", "downscale": downscale, "background": list(background)}, depends_on=[path])
+    K = torch.stack([lenses[image_path][0] for image_path in image_paths])
+    views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images,
+                  names=[image_path.name for image_path in image_paths])
     aabb_scale = float(meta["aabb_scale"]) if "aabb_scale" in meta else None
     if far is None:
         far = 2.0 * math.sqrt(3.0) * aabb_scale if aabb_scale else 4.0
     return Scene(
-        splits={name: views.subset(index) for name, index in splits.items()}, near=near, far=far,
+        splits={name: views.subset([position[i] for i in index]) for name, index in splits.items()}, near=near, far=far,
         background=torch.tensor(background, dtype=torch.float32), source=str(path),
         world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale,
     )

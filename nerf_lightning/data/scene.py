@@ -110,6 +110,15 @@ class Scene:
         raise ValueError(f"{self.source}: no held-out views with images (val or test); hold some out with data.scene.holdout_every")
 
 
+def stacking_order(splits: dict[str, list[int]]) -> tuple[list[int], dict[str, list[int]]]:
+    """Views of each split (indices into a capture's frames) -> the order to stack the frames' images in, each
+    split's in a row and a view shared by splits once, and each split's rows in that stack: consecutive rows, so
+    that :meth:`Views.subset` slices every split out of one stack instead of copying it."""
+    order = list(dict.fromkeys(index for indices in splits.values() for index in indices))
+    row = {index: position for position, index in enumerate(order)}
+    return order, {name: [row[index] for index in indices] for name, indices in splits.items()}
+
+
 def evenly_spaced(count: int, keep: int) -> list[int]:
     """``keep`` indices spread evenly over ``range(count)`` (all of them if keep >= count)."""
     if keep >= count:

@@ -10,6 +10,7 @@ import torch
 
 from nerf_lightning.data.formats import blender, load_blender, load_transforms
 from nerf_lightning.data.image_stack import as_float_rgb, stack_images
+from nerf_lightning.data.images import load_image
 from nerf_lightning.io import write_png
 from tests.data.test_formats import copy_procedural
 from tests.data.test_transforms import write_transforms
@@ -79,13 +80,8 @@ def test_a_failed_decode_leaves_no_cache_file(tmp_path):
         write_png(path, torch.full((4, 4, 3), 0.5))
     paths[2].write_bytes(b"no PNG")
 
-    def decode(path: Path) -> torch.Tensor:
-        from nerf_lightning.data.images import load_image
-
-        return load_image(path)
-
     with pytest.raises(ValueError, match=r"could not read image .*2.png"):
-        stack_images(paths, decode, cache=tmp_path / "cache")
+        stack_images(paths, load_image, cache=tmp_path / "cache")
     assert list((tmp_path / "cache").iterdir()) == []
 
 
@@ -93,8 +89,6 @@ def test_images_of_another_size_are_named_in_memory_and_on_disk(tmp_path):
     paths = [tmp_path / "a.png", tmp_path / "b.png"]
     write_png(paths[0], torch.zeros(4, 6, 3))
     write_png(paths[1], torch.zeros(5, 6, 3))
-    from nerf_lightning.data.images import load_image
-
     for cache in (None, tmp_path / "cache"):
         with pytest.raises(ValueError, match=r"b.png is 6x5 but a.png is 6x4: all images of a split must have one size"):
             stack_images(paths, load_image, cache=cache)
@@ -103,8 +97,6 @@ def test_images_of_another_size_are_named_in_memory_and_on_disk(tmp_path):
 def test_a_cache_folder_that_cannot_be_written_is_named(tmp_path):
     (tmp_path / "a_file").write_text("")
     write_png(tmp_path / "a.png", torch.zeros(4, 4, 3))
-    from nerf_lightning.data.images import load_image
-
     with pytest.raises(PermissionError, match=r"cannot write to the folder .*a_file/cache .*data.scene.image_cache="):
         stack_images([tmp_path / "a.png"], load_image, cache=tmp_path / "a_file" / "cache")
 

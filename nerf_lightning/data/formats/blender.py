@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.image_stack import stack_images
+from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import load_image
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w

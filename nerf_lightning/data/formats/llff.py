@@ -23,7 +23,7 @@ import torch
 
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import load_image
-from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -141,7 +141,7 @@ def load_llff(
     train = [i for i in range(count) if i not in held]
     if max_views:
         train = [train[i] for i in evenly_spaced(len(train), max_views)]
-    order = train + held  # each split's views in a row: both splits are slices of one image stack
+    order, rows = stacking_order({"train": train, "val": held} if held else {"train": train})
     images = stack_images([files[i] for i in order], load_image, cache=image_cache, label=f"{root.name}-{folder.name}", recipe={"loader": "llff"})
     height, width = images.shape[1:3]
     full_height, full_width, full_focal = hwf[0]
@@ -169,9 +169,9 @@ def load_llff(
     K = torch.tensor([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
     views = Views(K=K.expand(len(order), 3, 3).clone(), c2w=cameras, height=height, width=width, images=images,
                   names=[files[i].name for i in order])
-    splits = {"train": views.subset(list(range(len(train))))}
+    splits = {name: views.subset(split_rows) for name, split_rows in rows.items()}
     if held:
-        splits["val"] = splits["test"] = views.subset(list(range(len(train), len(order))))
+        splits["test"] = splits["val"]
     splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
     near = float(bounds.min() * 0.9) if near is None else near
     far = float(bounds.max()) if far is None else far

@@ -29,10 +29,10 @@ import kornia
 import numpy as np
 import torch
 
-from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.image_stack import stack_images
+from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image
-from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 from nerf_lightning.geometry.paths import look_at_point
 
@@ -218,9 +218,7 @@ def load_transforms(
             splits["val"] = splits["test"] = held
     if max_views:
         splits["train"] = [splits["train"][i] for i in evenly_spaced(len(splits["train"]), max_views)]
-    # the frames the splits use, each split's in a row, so that every split is a slice of one image stack
-    order = list(dict.fromkeys(index for indices in splits.values() for index in indices))
-    position = {index: row for row, index in enumerate(order)}
+    order, rows = stacking_order(splits)
 
     def decode(image_path: Path) -> torch.Tensor:
         return undistort(downscale_image(load_image(image_path, background=background), downscale), *lenses[image_path])
@@ -235,7 +233,7 @@ def load_transforms(
     if far is None:
         far = 2.0 * math.sqrt(3.0) * aabb_scale if aabb_scale else 4.0
     return Scene(
-        splits={name: views.subset([position[i] for i in index]) for name, index in splits.items()}, near=near, far=far,
+        splits={name: views.subset(split_rows) for name, split_rows in rows.items()}, near=near, far=far,
         background=torch.tensor(background, dtype=torch.float32), source=str(path),
         world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale,
     )

@@ -14,6 +14,8 @@ from lightning.pytorch.callbacks.progress.progress_bar import ProgressBar
 from lightning.pytorch.loggers import TensorBoardLogger
 from tqdm import tqdm
 
+from nerf_lightning import __version__
+from nerf_lightning.checkpoints import CHECKPOINT_FORMAT
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.plots import plot_psnr_curves
@@ -142,7 +144,9 @@ class RunConfigInCheckpoint(L.Callback):
         self.config = config
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
-        checkpoint["nerf_lightning"] = {"kind": getattr(pl_module, "kind", type(pl_module).__name__), "config": self.config}
+        checkpoint["nerf_lightning"] = {
+            "kind": getattr(pl_module, "kind", type(pl_module).__name__), "config": self.config, "format": CHECKPOINT_FORMAT, "version": __version__,
+        }
 
 
 class StepProgressBar(ProgressBar):

@@ -13,6 +13,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
 
+from nerf_lightning import __version__
 from nerf_lightning.io import write_atomic
 
 log = logging.getLogger(__name__)
@@ -44,24 +45,47 @@ def run_dir_of(ckpt_path: str | Path) -> Path:
 OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path)), replace=True)
 
 
-def load_model(
-    ckpt_path: str | Path, map_location: str | torch.device = "cpu", kind: str | None = None, command: str = "this command"
-) -> tuple[L.LightningModule, dict[str, Any]]:
-    """Load a nerf-train checkpoint: the model in eval mode and the run's resolved config.
+# What a checkpoint's layout is, kept in its "nerf_lightning" entry. 1: nerf-lightning 0.1; 2: 0.2, where samplers and
+# the scene space became objects (a radiance field's weights moved under model.sampler, its bounds into "scene_space").
+CHECKPOINT_FORMAT = 2
+LAST_COMMIT_OF_FORMAT_1 = "5bab3ec"
 
-    Raises FileNotFoundError for a missing file and ValueError for a file that is not a nerf-train checkpoint
-    or, when ``kind`` is given, holds another kind of model than ``command`` works with.
-    """
+
+def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """A nerf-train checkpoint, checked: FileNotFoundError for a missing file; ValueError for a file that is not a
+    nerf-train checkpoint, or one whose layout this version cannot load (naming the version that wrote it)."""
     path = Path(ckpt_path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
-        checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+        checkpoint = torch.load(path, map_location=map_location, weights_only=False, mmap=True)
     except Exception as error:
         raise ValueError(f"could not read checkpoint {path}: {error}") from error
     info = checkpoint.get("nerf_lightning") if isinstance(checkpoint, dict) else None
     if not info or "config" not in info:
         raise ValueError(f"{path} is not a nerf-train checkpoint: it has no 'nerf_lightning' entry with the run's config")
+    layout = int(info.get("format", 1))
+    if layout > CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} was written by nerf-lightning {info.get('version', 'newer')} (checkpoint format {layout}); this is "
+                         f"nerf-lightning {__version__} (format {CHECKPOINT_FORMAT}): upgrade it to load the checkpoint")
+    if layout < 2 and info.get("kind") == "radiance_field":
+        raise ValueError(f"{path} was written by nerf-lightning 0.1 (checkpoint format 1), whose radiance fields this version "
+                         f"({__version__}) cannot load: samplers and the scene space changed in 0.2 (see the README). Train it again, "
+                         f"or use the 0.1 code for it (git checkout {LAST_COMMIT_OF_FORMAT_1})")
+    return checkpoint
+
+
+def load_model(
+    ckpt_path: str | Path, map_location: str | torch.device = "cpu", kind: str | None = None, command: str = "this command"
+) -> tuple[L.LightningModule, dict[str, Any]]:
+    """Load a nerf-train checkpoint (:func:`read_checkpoint`): the model in eval mode and the run's resolved config.
+
+    Raises ValueError, besides :func:`read_checkpoint`'s, when ``kind`` is given and the checkpoint holds another kind
+    of model than ``command`` works with.
+    """
+    path = Path(ckpt_path).expanduser()
+    checkpoint = read_checkpoint(path, map_location)
+    info = checkpoint["nerf_lightning"]
     if kind is not None and info.get("kind") != kind:
         raise ValueError(f"{path} holds a model of kind '{info.get('kind')}'; {command} works with {kind} checkpoints")
     config = info["config"]

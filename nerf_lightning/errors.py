@@ -16,7 +16,7 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from hydra.errors import InstantiationException
 
@@ -34,6 +34,12 @@ def input_error(error: BaseException) -> BaseException | None:
     return error if isinstance(error, (*INPUT_ERRORS, NonFiniteLossError)) else None
 
 
+def fail(command: str, message: str) -> NoReturn:
+    """Print ``<command>: error: <message>`` on stderr and exit with status 2."""
+    print(f"{command}: error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
 def report_errors(command: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """Wrap the Hydra task function of ``command``: input errors print one line on stderr and exit 2 (see the
     module's docstring)."""
@@ -47,8 +53,7 @@ def report_errors(command: str) -> Callable[[Callable[..., Any]], Callable[..., 
                 cause = input_error(error)
                 if cause is None or os.environ.get("NERF_LIGHTNING_TRACEBACK"):
                     raise
-                print(f"{command}: error: {cause}", file=sys.stderr)
-                sys.exit(2)
+                fail(command, str(cause))
 
         return wrapper
 

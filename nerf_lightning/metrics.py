@@ -1,10 +1,62 @@
-"""Image-quality metrics. PSNR and SSIM come from kornia; this adds PSNR from an MSE already computed."""
+"""Quality metrics: of images (PSNR and SSIM from kornia, depth error) and of meshes (Chamfer distance)."""
 
 from __future__ import annotations
 
+import kornia
+import numpy as np
 import torch
 
 
 def mse_to_psnr(mse: torch.Tensor) -> torch.Tensor:
     """PSNR in dB of colours in [0, 1] from their mean squared error: -10 log10(mse)."""
     return -10.0 * torch.log10(mse)
+
+
+def image_metrics(
+    rgb: torch.Tensor, target: torch.Tensor, depth: torch.Tensor | None = None, true_depth: torch.Tensor | None = None
+) -> dict[str, torch.Tensor]:
+    """The metrics of one rendered view, the same in validation and in ``nerf-eval``.
+
+    Args:
+        rgb, target: (H, W, 3) rendered and true colours in [0, 1].
+        depth: (H, W) rendered depth (the expected distance along unit rays); true_depth: (H, W) the true distance,
+            inf where the pixel sees no surface; both or neither.
+
+    Returns:
+        ``psnr`` (dB), ``ssim`` (kornia, 11x11 window) and, with depths, ``depth_error``: the mean absolute
+        difference over the pixels that see a surface (NaN when none does). 0-d tensors.
+    """
+    if rgb.shape != target.shape or rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise ValueError(f"image_metrics expects (H, W, 3) rgb and target of one shape, got {tuple(rgb.shape)} and {tuple(target.shape)}")
+    metrics = {
+        "psnr": kornia.metrics.psnr(rgb, target, max_val=1.0),
+        "ssim": kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11).mean(),
+    }
+    if depth is not None and true_depth is not None:
+        surface = torch.isfinite(true_depth)
+        metrics["depth_error"] = (depth[surface] - true_depth[surface]).abs().mean() if bool(surface.any()) else rgb.new_tensor(float("nan"))
+    return metrics
+
+
+def chamfer_distance(vertices: np.ndarray | torch.Tensor, surface_points: torch.Tensor, mesh_to_surface: torch.Tensor | None = None,
+                     chunk: int = 4096) -> dict[str, float]:
+    """How far a mesh is from a true surface, in scene units.
+
+    Args:
+        vertices: (V, 3) the mesh's vertices.
+        surface_points: (P, 3) points of the true surface (for example what views see at their true depth).
+        mesh_to_surface: (V,) each vertex's exact distance to the surface where it is known (a signed distance
+            function); otherwise the distance to the nearest of ``surface_points``.
+
+    Returns:
+        ``mesh_to_surface`` and ``surface_to_mesh`` (mean nearest distances each way) and ``chamfer``, their mean.
+    """
+    vertices_t = torch.as_tensor(np.asarray(vertices)).double()
+    surface_points = surface_points.double()
+
+    def nearest(from_points: torch.Tensor, to_points: torch.Tensor) -> torch.Tensor:
+        return torch.cat([torch.cdist(part, to_points).amin(dim=1) for part in from_points.split(chunk)])
+
+    to_surface = float(mesh_to_surface.abs().mean()) if mesh_to_surface is not None else float(nearest(vertices_t, surface_points).mean())
+    to_mesh = float(nearest(surface_points, vertices_t).mean())
+    return {"mesh_to_surface": to_surface, "surface_to_mesh": to_mesh, "chamfer": 0.5 * (to_surface + to_mesh)}

@@ -25,9 +25,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_nerf import train_preset  # noqa: E402
 
-from nerf_lightning.config import compose_config  # noqa: E402
-from nerf_lightning.evaluate import evaluate  # noqa: E402
-from nerf_lightning.render import render  # noqa: E402
+from nerf_lightning.evaluation import evaluate_checkpoint  # noqa: E402
+from nerf_lightning.checkpoints import load_model  # noqa: E402
+from nerf_lightning.rendering.views import render_camera_path  # noqa: E402
 
 
 def main() -> None:
@@ -54,14 +54,13 @@ def main() -> None:
     ckpt = run_dir / "checkpoints" / "last.ckpt"
 
     started = time.perf_counter()
-    evaluated = evaluate(compose_config([f"ckpt_path={ckpt}", "split=test", f"max_views={args.eval_views or 'null'}",
-                                         f"output_dir={run_dir / 'eval'}"], config_name="eval"))
+    evaluated = evaluate_checkpoint(ckpt, run_dir / "eval", "test", max_views=args.eval_views)
     result["eval"] = {"views": evaluated["views"], "mean": evaluated["mean"], "per_view": evaluated["per_view"],
                       "seconds_per_view": round((time.perf_counter() - started) / evaluated["views"], 2)}
 
     started = time.perf_counter()
-    render(compose_config([f"ckpt_path={ckpt}", "render.path=spiral", f"render.frames={args.frames}", f"render.scale={args.render_scale}",
-                           f"output_dir={run_dir / 'spiral'}"], config_name="render"))
+    model, info = load_model(ckpt, kind="radiance_field")
+    render_camera_path(model, info["config"], run_dir / "spiral", "spiral", args.frames, args.render_scale)
     result["spiral"] = {"frames": args.frames, "scale": args.render_scale, "seconds_per_frame": round((time.perf_counter() - started) / args.frames, 3),
                         "rgb_gif": str(run_dir / "spiral" / "rgb.gif"), "depth_gif": str(run_dir / "spiral" / "depth.gif")}
 

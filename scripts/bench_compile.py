@@ -19,12 +19,12 @@ from pathlib import Path
 
 import torch
 
-from nerf_lightning.fields import HashGridField
+from nerf_lightning.fields import GridField, HashGridEncoding
 
 
 def run(compiled: bool, steps: int, samples: int, seed: int) -> dict:
     torch.manual_seed(seed)
-    field = HashGridField(aabb=[-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], n_levels=8, max_resolution=1024)
+    field = GridField(aabb=[-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], encoding=HashGridEncoding(n_levels=8, max_resolution=1024))
     optimizer = torch.optim.Adam(field.parameters(), lr=1e-2, eps=1e-15)
     generator = torch.Generator().manual_seed(seed)
 

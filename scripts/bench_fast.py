@@ -40,7 +40,7 @@ from nerf_lightning.data.image_stack import as_float_rgb  # noqa: E402
 from nerf_lightning.data.scene import evenly_spaced  # noqa: E402
 from nerf_lightning.geometry.rays import image_rays  # noqa: E402
 from nerf_lightning.plots import plot_psnr_curves  # noqa: E402
-from nerf_lightning.rendering import OccupancyGrid, march_rays  # noqa: E402
+from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler  # noqa: E402
 
 
 @torch.no_grad()
@@ -53,7 +53,9 @@ def evaluate_fast(ckpt: Path, root: Path, views: int) -> dict:
     val = val.subset(evenly_spaced(len(val), views))
     psnrs, ssims, seconds = [], [], []
     dense, listed, evaluated, rays = 0, 0, 0, 0
-    everything = OccupancyGrid(model.occupancy_grid.aabb.tolist(), resolution=1)  # all occupied: plain stepping
+    sampler, space = model.sampler, model.space
+    # all occupied: plain stepping at the same step
+    everything = OccupancyGridSampler(OccupancyGrid(sampler.grid.aabb.tolist(), resolution=1), sampler.step_size, sampler.cone_angle)
     for index in range(len(val)):
         rays_o, rays_d = (x[0] for x in image_rays(val.K[index : index + 1], val.c2w[index : index + 1], val.height, val.width))
         started = time.perf_counter()
@@ -64,15 +66,16 @@ def evaluate_fast(ckpt: Path, root: Path, views: int) -> dict:
         psnrs.append(float(kornia.metrics.psnr(rgb, target, max_val=1.0)))
         ssims.append(float(kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11).mean()))
         for o, d in zip(rays_o.split(model.chunk_size), rays_d.split(model.chunk_size)):
-            dense += len(march_rays(everything, o, d, model.near, model.far, model.step_size, perturb=False).ray_indices)
-            listed += len(march_rays(model.occupancy_grid, o, d, model.near, model.far, model.step_size, perturb=False).ray_indices)
-            evaluated += int(model.render(o, d)["n_samples"])
+            rays_chunk = space.rays(o, d)
+            dense += len(everything.sample(rays_chunk, space, model.field, perturb=False))
+            listed += len(sampler.sample(rays_chunk, space, model.field, perturb=False))
+            evaluated += int(model.render(o, d)["n_evaluated"])
             rays += len(o)
     return {
         "batch_size": int(cfg["config"]["data"]["batch_size"]), "eval_views": len(val), "psnr": sum(psnrs) / len(psnrs), "ssim": sum(ssims) / len(ssims), "psnr_per_view": psnrs,
         "seconds_per_frame": sum(seconds[1:]) / max(len(seconds) - 1, 1), "frame_size": [val.height, val.width],
         "samples_per_ray": {"plain_stepping": dense / rays, "occupied_cells": listed / rays, "evaluated": evaluated / rays},
-        "step_size": model.step_size, "grid_occupied_fraction": float(model.occupancy_grid.binary.float().mean()),
+        "step_size": sampler.step_size, "grid_occupied_fraction": float(sampler.grid.binary.float().mean()),
     }
 
 

@@ -4,7 +4,7 @@
 
 Both fit the same ImageField (L = 10, width 256, 3 hidden layers) with Adam lr 1e-2 and 10 000 random pixels
 a step, from the same initial weights and on the same batches. The plain loop's time runs from its first step to the whole-image PSNR after the last one. The
-Lightning time is the whole ``nerf_lightning.train.train`` call with the shipped ``experiment=image``
+Lightning time is the whole ``nerf_lightning.training.train`` call with the shipped ``experiment=image``
 config: data set-up, the five whole-image snapshots, checkpoints, TensorBoard and metrics.json included
 (the progress bar off, as in a log file). The two alternate ``--repeats`` times (default 2) and the ratio is
 that of their fastest runs, so a passing hiccup of a shared machine does not decide it; every time is in
@@ -30,7 +30,7 @@ from nerf_lightning.config import compose_config
 from nerf_lightning.data import downscale, load_image, pixel_grid
 from nerf_lightning.data.batches import batch_seed
 from nerf_lightning.fields import ImageField
-from nerf_lightning.train import train
+from nerf_lightning.training import train
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_IMAGE = ROOT.parent / "shared" / "data" / "nerfstudio" / "fox" / "images" / "0001.jpg"

@@ -99,7 +99,7 @@ def main() -> None:
     cache = None if args.image_cache is None else args.image_cache.resolve()
 
     with tempfile.TemporaryDirectory() as run:
-        command = [sys.executable, "-m", "nerf_lightning.train", f"experiment={args.preset}", f"data.root={args.root.resolve()}",
+        command = [sys.executable, "-m", "nerf_lightning.cli.train", f"experiment={args.preset}", f"data.root={args.root.resolve()}",
                    "data.scene.downscale=1", f"trainer.max_steps={args.steps}", f"data.val_every={args.steps}", "data.val_views=1",
                    "trainer.enable_progress_bar=false", f"hydra.run.dir={run}", *args.overrides]
         if cache is not None:

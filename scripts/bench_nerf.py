@@ -22,7 +22,7 @@ import torch
 
 from nerf_lightning.config import compose_config
 from nerf_lightning.plots import plot_psnr_curves
-from nerf_lightning.train import train
+from nerf_lightning.training import train
 
 
 def train_preset(

@@ -12,9 +12,13 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
+import torch
+
 from nerf_lightning.data.formats import load_procedural
-from nerf_lightning.data.formats.surface import chamfer_to_surface
-from nerf_lightning.export import read_ply_vertices
+from nerf_lightning.data.formats.procedural import surface_distance
+from nerf_lightning.mesh import read_mesh
+from nerf_lightning.metrics import chamfer_distance
 
 
 def main() -> None:
@@ -22,8 +26,9 @@ def main() -> None:
     parser.add_argument("mesh", type=Path)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
-    vertices, _ = read_ply_vertices(args.mesh)
-    result = {"mesh": str(args.mesh), "vertices": len(vertices), **chamfer_to_surface(vertices, load_procedural().splits["test"])}
+    vertices = torch.from_numpy(np.asarray(read_mesh(args.mesh).vertices)).double()
+    surface = load_procedural().splits["test"].surface_points()
+    result = {"mesh": str(args.mesh), "vertices": len(vertices), **chamfer_distance(vertices, surface, surface_distance(vertices))}
     text = json.dumps(result, indent=2)
     print(text)
     if args.out:

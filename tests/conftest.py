@@ -30,7 +30,7 @@ def run_cli(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
     """Run ``python -m nerf_lightning.<module> args`` as a user would; fails the test with its output."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     result = subprocess.run(
-        [sys.executable, "-m", f"nerf_lightning.{module}", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+        [sys.executable, "-m", f"nerf_lightning.cli.{module}", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
     )
     if result.returncode != 0:
         pytest.fail(f"{module} {' '.join(args)} exited {result.returncode}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")

@@ -24,7 +24,7 @@ def test_run_dir_of():
 
 
 def test_a_checkpoint_of_another_model_kind_is_refused_by_name(make_config, tmp_path):
-    from nerf_lightning.train import train
+    from nerf_lightning.training import train
 
     train(make_config("experiment=image", "data.downscale=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
                       "trainer.enable_progress_bar=false", run_dir=tmp_path / "image"))
@@ -33,3 +33,19 @@ def test_a_checkpoint_of_another_model_kind_is_refused_by_name(make_config, tmp_
     assert info["kind"] == "image_field" and info["global_step"] == 2
     with pytest.raises(ValueError, match="holds a model of kind 'image_field'; nerf-eval works with radiance_field checkpoints"):
         load_model(ckpt, kind="radiance_field", command="nerf-eval")
+
+
+def test_a_radiance_field_checkpoint_of_0_1_is_refused_in_one_line_naming_its_version(tmp_path):
+    """0.1's layout: weights at model.occupancy_grid / model.fine_field, bounds as module attributes, no format key."""
+    import subprocess
+    import sys
+
+    old = {"state_dict": {"field.encoding.table": torch.zeros(4, 2), "occupancy_grid.binary": torch.ones(2, 2, 2, dtype=torch.bool)},
+           "global_step": 100, "nerf_lightning": {"kind": "radiance_field", "config": {"model": {}}}}
+    torch.save(old, tmp_path / "old.ckpt")
+    with pytest.raises(ValueError, match=r"old.ckpt was written by nerf-lightning 0.1 \(checkpoint format 1\).*git checkout 5bab3ec"):
+        load_model(tmp_path / "old.ckpt")
+    result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.render", f"ckpt_path={tmp_path / 'old.ckpt'}"],
+                            cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert "written by nerf-lightning 0.1" in result.stderr and len(result.stderr.strip().splitlines()) == 1

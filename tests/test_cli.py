@@ -73,7 +73,7 @@ def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):
 
     run = tmp_path / "run"
     process = subprocess.Popen(
-        [sys.executable, "-m", "nerf_lightning.train", *TINY, "trainer.max_steps=1000000", "data.val_steps=[5]",
+        [sys.executable, "-m", "nerf_lightning.cli.train", *TINY, "trainer.max_steps=1000000", "data.val_steps=[5]",
          "callbacks.last_checkpoint.every_n_train_steps=1000000", f"hydra.run.dir={run}"],
         cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )

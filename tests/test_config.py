@@ -24,7 +24,7 @@ def test_unknown_key_is_refused():
 
 
 def test_unknown_key_on_the_command_line_exits_non_zero_naming_it(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "nerf_lightning.train", "data.pth=x.png"], cwd=tmp_path, capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.train", "data.pth=x.png"], cwd=tmp_path, capture_output=True, text=True)
     assert result.returncode != 0
     assert "data.pth" in result.stderr
     assert not (tmp_path / "outputs").exists() or not any((tmp_path / "outputs").rglob("metrics.json"))
@@ -33,12 +33,12 @@ def test_unknown_key_on_the_command_line_exits_non_zero_naming_it(tmp_path):
 def test_radiance_presets_compose_their_recipes():
     course = compose_config(["experiment=nerf_course", "data.root=lego.npz", "paths.output_dir=/tmp/x"])
     assert course.data.scene._target_.endswith("load_npz") and course.data.root == "lego.npz"
-    assert (course.data.scene.near, course.data.scene.far, course.model.n_samples, course.data.batch_size) == (2.0, 6.0, 64, 10_000)
-    assert course.model.optimizer.lr == 5e-4 and course.model.fine_field is None
+    assert (course.data.scene.near, course.data.scene.far, course.model.sampler.n_samples, course.data.batch_size) == (2.0, 6.0, 64, 10_000)
+    assert course.model.optimizer.lr == 5e-4 and course.model.sampler._target_.endswith("StratifiedSampler")
 
     blender = compose_config(["experiment=nerf_blender", "data.root=lego", "paths.output_dir=/tmp/x"])
     assert blender.data.scene.downscale == 4 and blender.data.batch_size == 2048
-    assert blender.model.fine_field.hidden_layers == 8 and blender.model.n_fine_samples == 128
+    assert blender.model.sampler.coarse_field.hidden_layers == 8 and blender.model.sampler.n_fine_samples == 128
     assert blender.model.scheduler.final_ratio == 0.1 and blender.model.scheduler.steps == blender.trainer.max_steps
 
     procedural = compose_config(["experiment=nerf_procedural", "paths.output_dir=/tmp/x"])
@@ -49,22 +49,50 @@ def test_the_paper_model_is_the_default_nerf():
     cfg = compose_config(["model=nerf", "data=procedural", "paths.output_dir=/tmp/x"])
     field = cfg.model.field
     assert (field.position_frequencies, field.direction_frequencies, field.hidden_width, field.hidden_layers, field.skip_layer, field.view_width) == (10, 4, 256, 8, 4, 128)
-    assert cfg.model.fine_field == field and (cfg.model.n_samples, cfg.model.n_fine_samples) == (64, 128)
+    sampler = cfg.model.sampler
+    assert sampler.coarse_field == field and (sampler.n_samples, sampler.n_fine_samples) == (64, 128)
 
 
 def test_fast_presets_build_their_fields_and_one_box_for_field_and_grid():
     from hydra.utils import instantiate
 
-    from nerf_lightning.fields import GridField, HashGridField, NeRFField, TensorVMEncoding
+    from nerf_lightning.fields import GridField, HashGridEncoding, NeRFField, TensorVMEncoding
+    from nerf_lightning.rendering import OccupancyGridSampler
 
-    for preset, field_type, box in (("fast", HashGridField, 1.3), ("fast_blender", HashGridField, 1.5),
-                                    ("fast_blender_tensorf", GridField, 1.5), ("nerf_blender_grid", NeRFField, 1.5)):
+    for preset, encoding_type, box in (("fast", HashGridEncoding, 1.3), ("fast_blender", HashGridEncoding, 1.5),
+                                       ("fast_blender_tensorf", TensorVMEncoding, 1.5), ("nerf_blender_grid", None, 1.5)):
         cfg = compose_config([f"experiment={preset}", "paths.output_dir=/tmp/x", *(["data.root=lego"] if preset != "fast" else [])])
         model = instantiate(cfg.model)
-        assert type(model.field) is field_type and model.fine_field is None
-        assert model.occupancy_grid.aabb.tolist() == pytest.approx([-box] * 3 + [box] * 3)
-        if hasattr(model.field, "aabb"):
-            assert model.field.aabb.tolist() == model.occupancy_grid.aabb.tolist()
-    assert isinstance(model.field, NeRFField) and model.step_size == (6.0 - 2.0) / 64  # the paper MLP: the stratified spacing
-    tensorf = instantiate(compose_config(["experiment=fast_blender_tensorf", "data.root=lego", "paths.output_dir=/tmp/x"]).model)
-    assert isinstance(tensorf.field.encoding, TensorVMEncoding)
+        assert isinstance(model.sampler, OccupancyGridSampler)
+        assert model.sampler.grid.aabb.tolist() == pytest.approx([-box] * 3 + [box] * 3)
+        if encoding_type is None:
+            assert isinstance(model.field, NeRFField)
+        else:
+            assert type(model.field) is GridField and isinstance(model.field.encoding, encoding_type)
+            assert model.field.aabb.tolist() == model.sampler.grid.aabb.tolist()
+    assert model.sampler.step_size == (6.0 - 2.0) / 64  # the paper MLP on the grid: the stratified spacing
+
+
+def test_the_field_and_sampler_groups_mix_freely():
+    from hydra.utils import instantiate
+
+    from nerf_lightning.rendering import HierarchicalSampler, StratifiedSampler
+
+    for field in ("nerf", "hash_grid", "tensorf"):
+        for sampler, kind in (("stratified", StratifiedSampler), ("hierarchical", HierarchicalSampler)):
+            cfg = compose_config(["model=ngp", f"model/field={field}", f"model/sampler={sampler}", "data=procedural", "paths.output_dir=/tmp/x"])
+            model = instantiate(cfg.model)
+            assert isinstance(model.sampler, kind)
+            if sampler == "hierarchical":  # the coarse network is built like the field, with its own weights
+                assert type(model.sampler.coarse_field) is type(model.field) and model.sampler.coarse_field is not model.field
+
+
+def test_a_key_that_0_2_moved_is_refused_with_the_key_to_use(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.train", "experiment=fast", "model.fine_field=null"],
+                            cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode != 0
+    assert "'model.fine_field' was moved in nerf-lightning 0.2" in result.stderr and "model.sampler.coarse_field" in result.stderr
+    assert "Traceback" not in result.stderr
+    result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.train", "experiment=fast", "model.field.n_levels=4"],
+                            cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode != 0 and "use model.field.encoding.n_levels" in result.stderr

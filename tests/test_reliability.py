@@ -12,10 +12,10 @@ import torch
 
 from nerf_lightning.config import compose_config
 from nerf_lightning.errors import report_errors
-from nerf_lightning.evaluate import evaluate
+from nerf_lightning.cli.evaluate import evaluate
 from nerf_lightning.io import write_png
-from nerf_lightning.render import render
-from nerf_lightning.train import train
+from nerf_lightning.cli.render import render
+from nerf_lightning.training import train
 from tests.conftest import ROOT
 
 QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
@@ -150,8 +150,8 @@ def test_resuming_from_a_missing_checkpoint_is_named(tmp_path, capsys):
 
 def test_eval_on_a_missing_second_capture_is_named(tmp_path, capsys, make_config):
     run = tmp_path / "trained"
-    train(make_config("experiment=fast", "model.field.n_levels=2", "model.field.log2_table_size=10", "model.field.max_resolution=32",
-                      "model.occupancy_grid.resolution=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_every=2",
+    train(make_config("experiment=fast", "model.field.encoding.n_levels=2", "model.field.encoding.log2_table_size=10", "model.field.encoding.max_resolution=32",
+                      "model.sampler.grid.resolution=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_every=2",
                       "data.val_views=1", *QUIET, run_dir=run))
     cfg = compose_config([f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", f"root={tmp_path / 'other.json'}",
                           f"output_dir={tmp_path / 'eval'}"], config_name="eval")
@@ -163,7 +163,7 @@ def run_command(*args: str, cwd) -> subprocess.CompletedProcess:
 
 
 def test_on_the_command_line_bad_input_is_one_line_and_exit_2(tmp_path):
-    result = run_command("nerf_lightning.train", "experiment=fast_blender", f"data.root={tmp_path / 'nowhere'}", f"hydra.run.dir={tmp_path / 'run'}",
+    result = run_command("nerf_lightning.cli.train", "experiment=fast_blender", f"data.root={tmp_path / 'nowhere'}", f"hydra.run.dir={tmp_path / 'run'}",
                          *QUIET, cwd=tmp_path)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines()[-1] == f"nerf-train: error: Blender scene folder not found: {tmp_path / 'nowhere'}"
@@ -171,7 +171,7 @@ def test_on_the_command_line_bad_input_is_one_line_and_exit_2(tmp_path):
 
 
 def test_an_unknown_group_option_lists_the_options(tmp_path):
-    result = run_command("nerf_lightning.train", "model=nerf_wrong", f"hydra.run.dir={tmp_path / 'run'}", cwd=ROOT)
+    result = run_command("nerf_lightning.cli.train", "model=nerf_wrong", f"hydra.run.dir={tmp_path / 'run'}", cwd=ROOT)
     assert result.returncode != 0
     assert "Could not find 'model/nerf_wrong'" in result.stderr and "Available options in 'model'" in result.stderr and "ngp" in result.stderr
     assert "Traceback" not in result.stderr

@@ -15,11 +15,11 @@ import torch
 from nerf_lightning.checkpoints import load_model
 from nerf_lightning.config import compose_config
 from nerf_lightning.data.batches import SegmentedBatches
-from nerf_lightning.train import train
+from nerf_lightning.training import train
 
 # experiment=fast, small enough for a test: 120 steps of 256 rays, last.ckpt every 20 steps
-SMALL_FAST = ["experiment=fast", "model.field.n_levels=4", "model.field.log2_table_size=12", "model.field.max_resolution=64",
-              "model.occupancy_grid.resolution=16", "data.batch_size=256", "data.val_views=1", "data.val_every=120",
+SMALL_FAST = ["experiment=fast", "model.field.encoding.n_levels=4", "model.field.encoding.log2_table_size=12", "model.field.encoding.max_resolution=64",
+              "model.sampler.grid.resolution=16", "data.batch_size=256", "data.val_views=1", "data.val_every=120",
               "trainer.max_steps=120", "callbacks.last_checkpoint.every_n_train_steps=20",
               "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
 
@@ -54,7 +54,7 @@ def test_kill_9_mid_run_then_resume_ends_where_the_uninterrupted_run_does(cached
 
     killed = tmp_path / "killed"
     last = killed / "checkpoints" / "last.ckpt"
-    process = subprocess.Popen([sys.executable, "-m", "nerf_lightning.train", *SMALL_FAST, f"hydra.run.dir={killed}"],
+    process = subprocess.Popen([sys.executable, "-m", "nerf_lightning.cli.train", *SMALL_FAST, f"hydra.run.dir={killed}"],
                                cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     try:
         deadline = time.monotonic() + 240
@@ -76,7 +76,7 @@ def test_kill_9_mid_run_then_resume_ends_where_the_uninterrupted_run_does(cached
     # state is in the checkpoint): the resumed run ends where the uninterrupted one does
     assert resumed["val/psnr"] == pytest.approx(straight["val/psnr"], abs=0.05)
     assert resumed["lr-Adam"] == pytest.approx(straight["lr-Adam"], rel=1e-6)
-    grids = [load_model(run / "checkpoints" / "last.ckpt")[0].occupancy_grid.binary for run in (tmp_path / "straight", tmp_path / "resumed")]
+    grids = [load_model(run / "checkpoints" / "last.ckpt")[0].sampler.grid.binary for run in (tmp_path / "straight", tmp_path / "resumed")]
     assert float((grids[0] != grids[1]).float().mean()) < 0.02
 
 
@@ -91,7 +91,7 @@ def test_each_rank_draws_its_own_rays():
 def test_ddp_trains_on_two_cpu_processes_and_its_checkpoint_loads(cached_scene, tmp_path):
     run = tmp_path / "ddp"
     result = subprocess.run(
-        [sys.executable, "-m", "nerf_lightning.train", *SMALL_FAST, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2",
+        [sys.executable, "-m", "nerf_lightning.cli.train", *SMALL_FAST, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2",
          "trainer.max_steps=6", "data.val_every=6", f"hydra.run.dir={run}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
     )

@@ -12,6 +12,7 @@ from nerf_lightning.data.batches import StepBatchesDataModule
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
+from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.geometry.rays import image_rays, indexed_pixel_rays
 
 
@@ -28,7 +29,9 @@ def view_batch(views: Views, index: int) -> dict[str, Any]:
 
 class RayDataModule(StepBatchesDataModule):
     """Each training step ``batch_size`` rays drawn uniformly, with replacement, over every pixel of every
-    training view, with their colours; validation on a few whole held-out views; a render path.
+    training view, with their colours; validation on a few whole held-out views; a render path. ``setup`` loads the
+    :class:`Scene` and builds its :class:`~nerf_lightning.geometry.space.SceneSpace` (``space``), which the model
+    renders in.
 
     Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units) and ``rgb``
     (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. A batch's rays are computed from the
@@ -45,9 +48,9 @@ class RayDataModule(StepBatchesDataModule):
         val_split: ``val`` or ``test``: which held-out split validation uses (the other when it is absent).
         render_path: ``test`` (the scene's render or test cameras), ``orbit`` or ``spiral``.
         render_frames: frames of a generated orbit or spiral.
-        ndc: sample forward-facing scenes in normalised device coordinates (LLFF; cameras looking down -z):
-            the rays stay in the world here, and ``ndc_params`` (focal, width, height, near plane 1) tell the
-            model to convert them (:func:`~nerf_lightning.geometry.rays.ndc_rays`).
+        ndc: sample forward-facing scenes in normalised device coordinates (LLFF; cameras looking down -z).
+        contract: an unbounded scene: fields see all of space contracted into [-2, 2]^3 (real captures with
+            their background; the fields' and grids' ``aabb`` must be that cube).
         val_steps, val_every, seed: see :class:`StepBatchesDataModule`.
     """
 
@@ -61,6 +64,7 @@ class RayDataModule(StepBatchesDataModule):
         render_path: str = "test",
         render_frames: int = 60,
         ndc: bool = False,
+        contract: bool = False,
         val_steps: list[int] | tuple[int, ...] = (),
         val_every: int | None = 500,
         seed: int = 0,
@@ -74,22 +78,16 @@ class RayDataModule(StepBatchesDataModule):
         self.val_split = val_split
         self.render_path = render_path
         self.render_frames = render_frames
-        self.ndc = ndc
-        self.ndc_params: dict[str, float] | None = None
+        self.ndc, self.contract = ndc, contract
         self.scene: Scene | None = None
+        self.space: SceneSpace | None = None
 
     def setup(self, stage: str | None = None) -> None:
         if self.scene is not None:
             return
         self.scene = self.load_scene() if self.root is None else self.load_scene(self.root)
-        train = self.scene.train
-        if self.ndc:
-            forward = torch.nn.functional.normalize(train.c2w[:, :3, 2].mean(0), dim=0)
-            if float(forward[2]) > -0.9:
-                raise ValueError(f"data.ndc=true needs forward-facing cameras looking down -z (an LLFF capture), but {self.scene.source}'s "
-                                 f"mean viewing direction is {[round(v, 3) for v in forward.tolist()]}")
-            self.ndc_params = {"focal": float(train.K[0, 0, 0]), "width": train.width, "height": train.height, "near_plane": 1.0}
-        self.rgb = train.images.reshape(-1, 3)  # (N*H*W, 3) uint8, a view of the images (in memory or mapped): no copy
+        self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract)
+        self.rgb = self.scene.train.images.reshape(-1, 3)  # (N*H*W, 3) uint8, a view of the images (in memory or mapped): no copy
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
         train = self.scene.train

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from nerf_lightning.geometry.rays import image_rays
+
 
 @dataclass
 class Views:
@@ -66,6 +68,24 @@ class Views:
             depth=take(self.depth),
             names=[self.names[int(i)] for i in index],
         )
+
+
+    def scaled(self, scale: float) -> Views:
+        """The same cameras rendering ``scale`` times as many pixels a side (no images)."""
+        if scale == 1.0:
+            return Views(K=self.K, c2w=self.c2w, height=self.height, width=self.width, names=self.names)
+        K = self.K.clone()
+        K[:, :2] *= scale
+        return Views(K=K, c2w=self.c2w, height=round(self.height * scale), width=round(self.width * scale), names=self.names)
+
+    def surface_points(self) -> torch.Tensor:
+        """(P, 3) the true surface points the views see: each pixel's ray at its true depth (float64; needs ``depth``)."""
+        if self.depth is None:
+            raise ValueError("these views have no true depth: surface points need it")
+        rays_o, rays_d = image_rays(self.K.double(), self.c2w.double(), self.height, self.width)
+        depth = self.depth.reshape(len(self), -1).double()
+        hit = torch.isfinite(depth)
+        return (rays_o + rays_d * depth.nan_to_num(posinf=0.0)[..., None])[hit]
 
 
 @dataclass

@@ -1,14 +1,15 @@
 """Fields: functions of position (and direction) made of encodings and MLPs."""
 
+from nerf_lightning.fields.base import Field
 from nerf_lightning.fields.encodings import SinusoidalEncoding, SphericalHarmonicsEncoding
+from nerf_lightning.fields.grid import GridField
 from nerf_lightning.fields.hash_grid import HashGridEncoding
 from nerf_lightning.fields.image_field import ImageField
 from nerf_lightning.fields.mlp import MLP
 from nerf_lightning.fields.nerf import NeRFField
-from nerf_lightning.fields.ngp import GridField, HashGridField
 from nerf_lightning.fields.tensorf import TensorVMEncoding
 
 __all__ = [
-    "MLP", "GridField", "HashGridEncoding", "HashGridField", "ImageField", "NeRFField", "SinusoidalEncoding",
-    "SphericalHarmonicsEncoding", "TensorVMEncoding",
+    "MLP", "Field", "GridField", "HashGridEncoding", "ImageField", "NeRFField", "SinusoidalEncoding", "SphericalHarmonicsEncoding",
+    "TensorVMEncoding",
 ]

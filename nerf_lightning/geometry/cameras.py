@@ -57,29 +57,57 @@ def pinhole_camera(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int) 
 
 
 def camera_to_world(c2w: torch.Tensor, x_c: torch.Tensor) -> torch.Tensor:
-    """Points from camera to world coordinates: (B, 4, 4) and (B, N, 3) -> (B, N, 3)."""
+    """Points from camera to world coordinates.
+
+    Batched: c2w (B, 4, 4) and x_c (B, N, 3) -> (B, N, 3). The course's unbatched shapes: x_c (N, 3) with one
+    camera c2w (4, 4), or with a camera per point c2w (N, 4, 4) -> (N, 3).
+    """
+    if x_c.ndim == 2:
+        if c2w.ndim == 2:
+            return kornia.geometry.transform_points(c2w[None], x_c[None])[0]
+        _check_per_point(c2w, x_c, "c2w", (4, 4))
+        return kornia.geometry.transform_points(c2w, x_c[:, None])[:, 0]
     return kornia.geometry.transform_points(c2w, x_c)
 
 
 def pixel_to_camera(K: torch.Tensor, uv: torch.Tensor, s: torch.Tensor | float) -> torch.Tensor:
     """Pixels to camera coordinates at depth ``s`` (the camera-frame z): x_c = s K^-1 [u, v, 1].
 
-    K (B, 3, 3), uv (B, N, 2), s a number or (B, N, 1) -> (B, N, 3).
+    Batched: K (B, 3, 3), uv (B, N, 2), s a number or (B, N, 1) -> (B, N, 3). The course's unbatched shapes:
+    K (3, 3) or (N, 3, 3), uv (N, 2), s a number, (N,) or (N, 1) -> (N, 3).
     """
+    if uv.ndim == 2:
+        depth = torch.as_tensor(s, dtype=uv.dtype, device=uv.device)
+        depth = depth[:, None] if depth.ndim == 1 else depth
+        if K.ndim == 3:
+            _check_per_point(K, uv, "K", (3, 3))
+            return pixel_to_camera(K, uv[:, None], depth.expand(len(uv), 1)[:, None])[:, 0]
+        return pixel_to_camera(K[None], uv[None], depth.expand(len(uv), 1)[None])[0]
     depth = torch.as_tensor(s, dtype=uv.dtype, device=uv.device).expand(*uv.shape[:-1], 1)
     return unproject_points(uv, depth, K[:, None])
 
 
 def pixel_to_ray(K: torch.Tensor, c2w: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rays through pixels: K (B, 3, 3), c2w (B, 4, 4) OpenCV, uv (B, N, 2) -> rays_o, rays_d (B, N, 3).
+    """Rays through pixels: rays_o, rays_d, the camera centre and the unit direction from it through the pixel's
+    point at depth 1.
 
-    The origin is the camera centre; the direction has unit length and points from the centre through
-    the pixel's point at depth 1.
+    Batched: K (B, 3, 3), c2w (B, 4, 4) OpenCV, uv (B, N, 2) -> (B, N, 3) each. The course's unbatched shapes:
+    K (3, 3), c2w (4, 4) for one camera or (N, 4, 4) for a camera per pixel, uv (N, 2) -> (N, 3) each.
     """
+    if uv.ndim == 2:
+        x_c = pixel_to_camera(K, uv, 1.0)  # (N, 3)
+        rays_o = (c2w[:3, 3] if c2w.ndim == 2 else c2w[:, :3, 3]).expand(len(uv), 3)
+        return rays_o, torch.nn.functional.normalize(camera_to_world(c2w, x_c) - rays_o, dim=-1)
     rays_o = c2w[:, None, :3, 3].expand(*uv.shape[:-1], 3)
     x_w = camera_to_world(c2w, pixel_to_camera(K, uv, 1.0))
     rays_d = torch.nn.functional.normalize(x_w - rays_o, dim=-1)
     return rays_o, rays_d
+
+
+def _check_per_point(matrices: torch.Tensor, points: torch.Tensor, name: str, shape: tuple[int, int]) -> None:
+    if matrices.shape != (len(points), *shape):
+        raise ValueError(f"{name} of shape {tuple(matrices.shape)} with {len(points)} points: expected one {shape} matrix "
+                         f"or one for each point, ({len(points)}, {shape[0]}, {shape[1]})")
 
 
 def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up: torch.Tensor | None = None) -> torch.Tensor:

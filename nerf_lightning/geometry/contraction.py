@@ -1,12 +1,10 @@
-"""From the world to a grid's unit cube: a bounded box, or an unbounded scene contracted (Mip-NeRF 360).
+"""Mip-NeRF 360's scene contraction: all of space into a cube, so that a grid can hold an unbounded scene.
 
-A grid (hash encoding, factorised grid, occupancy grid) covers the unit cube [0, 1]^3. A bounded scene maps its
-box ``aabb`` onto it linearly, and nothing outside the box exists. An unbounded scene (a real capture with its
-background) is *contracted*: the box is first mapped to [-1, 1]^3, where points stay as they are, and every point
-x beyond it moves to (2 - 1 / |x|) x / |x|, so that all of space up to infinity fits in [-2, 2]^3, which then maps
-to the unit cube. The norm is the max-norm (nerfstudio's ``SceneContraction(order=inf)``), so the contracted space
-is a cube that a grid fills without waste. The box keeps the middle half of each axis; the rest of the grid holds
-the background at a resolution that falls off as 1 / distance.
+Points in [-1, 1]^3 stay as they are, and every point x beyond moves to (2 - 1 / |x|) x / |x|, so that all of
+space up to infinity fits in [-2, 2]^3. The norm is the max-norm (nerfstudio's ``SceneContraction(order=inf)``),
+so the contracted space is a cube that a grid fills without waste: the inner box keeps the middle half of each
+axis, the rest holds the background at a resolution that falls off as 1 / distance. The loaders of real captures
+put the cameras inside [-1, 1]^3, so the inner box is where the subject is.
 """
 
 from __future__ import annotations
@@ -28,21 +26,22 @@ def uncontract(y: torch.Tensor) -> torch.Tensor:
     return torch.where(norm <= 1.0, y, y / safe / (2.0 - safe))
 
 
-def world_to_unit(points: torch.Tensor, aabb: torch.Tensor, contracted: bool = False) -> torch.Tensor:
-    """(..., 3) world points -> (..., 3) coordinates in the grid's unit cube.
+class Contraction:
+    """The contraction as an object a point is passed through (see the module's docstring).
 
-    ``aabb`` (6,): the box (xmin, ymin, zmin, xmax, ymax, zmax). Bounded: the box maps onto [0, 1]^3 and points
-    outside it fall outside [0, 1]. ``contracted``: the box maps onto [0.25, 0.75]^3 and all of space into [0, 1]^3.
+    ``contraction(points)`` maps (..., 3) scene points to (..., 3) points in :attr:`bounds`; ``inverse`` undoes it.
+    A field or an occupancy grid of a contracted scene covers :attr:`bounds`, the cube [-2, 2]^3, and the part of
+    the scene kept at full resolution, where the map is the identity, is :attr:`identity_box`, [-1, 1]^3.
     """
-    low, high = aabb[:3], aabb[3:]
-    if not contracted:
-        return (points - low) / (high - low)
-    return (contract(2.0 * (points - low) / (high - low) - 1.0) + 2.0) / 4.0
 
+    bounds = (-2.0, -2.0, -2.0, 2.0, 2.0, 2.0)
+    identity_box = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
 
-def unit_to_world(unit: torch.Tensor, aabb: torch.Tensor, contracted: bool = False) -> torch.Tensor:
-    """The inverse of :func:`world_to_unit`: (..., 3) coordinates in the unit cube -> (..., 3) world points."""
-    low, high = aabb[:3], aabb[3:]
-    if not contracted:
-        return low + unit * (high - low)
-    return low + (uncontract(4.0 * unit - 2.0) + 1.0) * 0.5 * (high - low)
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        return contract(points)
+
+    def inverse(self, points: torch.Tensor) -> torch.Tensor:
+        return uncontract(points)
+
+    def __repr__(self) -> str:
+        return "Contraction(max-norm, [-1, 1]^3 kept, all of space into [-2, 2]^3)"

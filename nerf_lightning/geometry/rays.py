@@ -62,6 +62,13 @@ def sample_along_rays(
     return points, t.contiguous()
 
 
+def ray_aabb_intersect(rays_o: torch.Tensor, rays_d: torch.Tensor, aabb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Slab test. (N, 3) rays and a (6,) box -> t_enter, t_exit (N,); the ray misses where t_exit < t_enter."""
+    safe_d = torch.where(rays_d.abs() < 1e-12, torch.full_like(rays_d, 1e-12), rays_d)
+    t0, t1 = (aabb[:3] - rays_o) / safe_d, (aabb[3:] - rays_o) / safe_d
+    return torch.minimum(t0, t1).amax(dim=-1), torch.maximum(t0, t1).amin(dim=-1)
+
+
 def ndc_rays(
     rays_o: torch.Tensor, rays_d: torch.Tensor, focal: float, width: int, height: int, near_plane: float = 1.0
 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,52 +1,37 @@
-"""Empty-space skipping: an occupancy grid over the scene's box and a ray marcher that only samples occupied cells.
+"""Empty-space skipping: an occupancy grid over the field's box and a ray marcher that only samples occupied cells.
 
 As in nerfacc's ``OccGridEstimator``: the grid keeps, for each of R^3 cells, a running (EMA) estimate of the
 opacity ``density * step_size`` the field has there, refreshed every few training steps from the field itself;
-a cell is occupied where that estimate exceeds ``min(threshold, mean)``. The marcher steps along each ray
-through the box at a fixed step, keeps the steps whose midpoint is in an occupied cell and, given the field's
-density, drops the steps that are nearly transparent or that lie behind where the ray is nearly opaque.
+a cell is occupied where that estimate exceeds ``min(threshold, mean)``. The marcher steps along each ray at a
+fixed step (or one that grows with the distance, ``cone_angle``), keeps the steps whose midpoint is in an occupied
+cell and, given the field's density, can drop the steps that are nearly transparent.
 
-An unbounded scene has a ``contracted`` grid: it covers all of space, contracted around the box (see
-:mod:`nerf_lightning.geometry.contraction`), and rays are marched from near to far with steps that grow with
-the distance (``cone_angle``, Instant-NGP's), so that the far background costs few steps.
+The grid lives in the *field space* (see :mod:`nerf_lightning.geometry.space`): its box is a box of the points the
+field sees. For an unbounded scene those are contracted, the grid covers the contraction's cube [-2, 2]^3, which
+holds all of space, and the marcher maps each step's midpoint through the contraction before looking it up.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
 
 import torch
 from torch import nn
 
-from nerf_lightning.geometry.contraction import unit_to_world, world_to_unit
 from nerf_lightning.rendering.packed import exclusive_sum_packed
+from nerf_lightning.rendering.packed import RaySamples
 
 # points (M, 3) -> densities (M,)
 DensityFn = Callable[[torch.Tensor], torch.Tensor]
 
 
-class PackedSamples(NamedTuple):
-    """M samples of N rays, packed: ``ray_indices`` (M,) non-decreasing, ``t_starts`` and ``t_ends`` (M,)."""
-
-    ray_indices: torch.Tensor
-    t_starts: torch.Tensor
-    t_ends: torch.Tensor
-
-
-def ray_aabb_intersect(rays_o: torch.Tensor, rays_d: torch.Tensor, aabb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Slab test. (N, 3) rays and a (6,) box -> t_enter, t_exit (N,); the ray misses where t_exit < t_enter."""
-    safe_d = torch.where(rays_d.abs() < 1e-12, torch.full_like(rays_d, 1e-12), rays_d)
-    t0, t1 = (aabb[:3] - rays_o) / safe_d, (aabb[3:] - rays_o) / safe_d
-    return torch.minimum(t0, t1).amax(dim=-1), torch.maximum(t0, t1).amin(dim=-1)
-
-
 class OccupancyGrid(nn.Module):
-    """A binary occupancy grid over an axis-aligned box, kept up to date from a field's density.
+    """A binary occupancy grid over an axis-aligned box of the field space, kept up to date from a field's density.
 
     Args:
-        aabb: the box, 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax).
+        aabb: the box, 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax), in the field space (the contraction's cube
+            [-2, 2]^3 for an unbounded scene).
         resolution: R, cells a side.
         update_every: refresh the grid every this many training steps.
         warmup_steps: before this step a refresh evaluates every cell and replaces the estimate; after it,
@@ -57,8 +42,6 @@ class OccupancyGrid(nn.Module):
         threshold: opacity (density x step size) above which a cell is occupied; lowered to the grid's mean
             opacity where that is smaller, so that a field of low density everywhere is not all empty.
         seed: cells and jitter of refresh k are drawn from ``seed + k``, so a resumed run refreshes alike.
-        contracted: the grid covers all of space, contracted around the box (an unbounded scene, see
-            :mod:`nerf_lightning.geometry.contraction`), instead of the box alone.
 
     Buffers ``occupancy`` (R, R, R) float and ``binary`` (R, R, R) bool go into checkpoints. The grid starts
     all occupied (nothing is skipped before the first refresh).
@@ -73,10 +56,8 @@ class OccupancyGrid(nn.Module):
         decay: float = 0.95,
         threshold: float = 0.01,
         seed: int = 0,
-        contracted: bool = False,
     ) -> None:
         super().__init__()
-        self.contracted = contracted
         aabb = torch.as_tensor(list(aabb), dtype=torch.float32)
         if aabb.shape != (6,) or not bool((aabb[3:] > aabb[:3]).all()):
             raise ValueError(f"OccupancyGrid: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {aabb.tolist()}")
@@ -89,27 +70,30 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("binary", torch.ones(resolution, resolution, resolution, dtype=torch.bool))
 
     def cell_of(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(..., 3) points -> (..., 3) integer cell coordinates (clamped) and (...,) whether the point is in the box."""
-        unit = world_to_unit(points, self.aabb, self.contracted)
+        """(..., 3) field-space points -> (..., 3) integer cell coordinates (clamped) and (...,) whether the point is in the box."""
+        unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
         return (unit * self.resolution).long().clamp(0, self.resolution - 1), inside
 
     def occupied(self, points: torch.Tensor) -> torch.Tensor:
-        """(..., 3) points -> (...,) bool: inside the box and in an occupied cell."""
+        """(..., 3) field-space points -> (...,) bool: inside the box and in an occupied cell."""
         cells, inside = self.cell_of(points)
         return self.binary[cells[..., 0], cells[..., 1], cells[..., 2]] & inside
 
+    def cell_points(self, unit: torch.Tensor) -> torch.Tensor:
+        """(..., 3) coordinates in the grid's unit cube -> (..., 3) field-space points."""
+        return self.aabb[:3] + unit * (self.aabb[3:] - self.aabb[:3])
+
     def cell_centres(self) -> torch.Tensor:
-        """(R, R, R, 3) the centres of the cells, in scene coordinates."""
+        """(R, R, R, 3) the centres of the cells, in the field space."""
         axis = (torch.arange(self.resolution, device=self.aabb.device, dtype=self.aabb.dtype) + 0.5) / self.resolution
-        unit = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1)
-        return unit_to_world(unit, self.aabb, self.contracted)
+        return self.cell_points(torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1))
 
     @torch.no_grad()
     def update(self, step: int, density_fn: DensityFn, step_size: float, chunk_size: int = 65536) -> bool:
         """Refresh the grid at training ``step`` if it is due; returns whether it refreshed.
 
-        ``density_fn``: (M, 3) points -> (M,) densities, evaluated at a random point of each chosen cell.
+        ``density_fn``: (M, 3) field-space points -> (M,) densities, evaluated at a random point of each chosen cell.
         ``step_size``: the marcher's step, which turns density into opacity.
         """
         if step % self.update_every != 0:
@@ -125,8 +109,7 @@ class OccupancyGrid(nn.Module):
             cells = torch.cat([uniform, picked])
         coords = torch.stack([cells // self.resolution**2, cells // self.resolution % self.resolution, cells % self.resolution], dim=-1)
         unit = (coords + torch.rand(coords.shape, generator=generator)) / self.resolution
-        cells, unit = cells.to(self.aabb.device), unit.to(self.aabb)
-        points = unit_to_world(unit, self.aabb, self.contracted)
+        cells, points = cells.to(self.aabb.device), self.cell_points(unit.to(self.aabb))
         density = torch.cat([density_fn(part) for part in points.split(chunk_size)])
         occupancy, estimate = self.occupancy.view(-1), density.to(self.occupancy) * step_size
         if step < self.warmup_steps:  # every cell was just evaluated: take the new estimate as it is
@@ -146,9 +129,10 @@ class OccupancyGrid(nn.Module):
 
 
 def step_edges(start: float, stop: float, step_size: float, cone_angle: float) -> torch.Tensor:
-    """(K + 1,) float64 edges of the steps from ``start`` to past ``stop``: a step at distance t is
+    """(K + 1,) float32 edges of the steps from ``start`` to past ``stop``: a step at distance t is
     ``max(step_size, cone_angle * t)`` long, so constant up to t = step_size / cone_angle and growing
-    geometrically, by (1 + cone_angle) a step, beyond it (Instant-NGP's cone tracing)."""
+    geometrically, by (1 + cone_angle) a step, beyond it (Instant-NGP's cone tracing). Computed in float64 on the
+    host, returned in float32."""
     linear_end = max(start, step_size / cone_angle)
     n_linear = math.ceil(max(min(linear_end, stop) - start, 0.0) / step_size)
     edges = start + step_size * torch.arange(n_linear + 1, dtype=torch.float64)
@@ -156,50 +140,48 @@ def step_edges(start: float, stop: float, step_size: float, cone_angle: float) -
     if last < stop:
         n_geometric = math.ceil(math.log(stop / last) / math.log1p(cone_angle))
         edges = torch.cat([edges, last * (1.0 + cone_angle) ** torch.arange(1, n_geometric + 1, dtype=torch.float64)])
-    return edges
+    return edges.float()
 
 
 def march_rays(
     grid: OccupancyGrid,
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
-    near: float,
-    far: float,
+    t_enter: torch.Tensor,
+    t_exit: torch.Tensor,
     step_size: float,
     perturb: bool,
-    generator: torch.Generator | None = None,
+    cone_angle: float = 0.0,
+    to_field: Callable[[torch.Tensor], torch.Tensor] | None = None,
     density_fn: DensityFn | None = None,
     alpha_threshold: float = 0.0,
     early_stop_eps: float = 0.0,
-    cone_angle: float = 0.0,
-) -> PackedSamples:
-    """March (N, 3) rays (unit directions) through the grid's box between near and far; packed samples of occupied cells.
+    generator: torch.Generator | None = None,
+) -> RaySamples:
+    """March (N, 3) rays from ``t_enter`` to ``t_exit`` (N,) (see :meth:`SceneSpace.ray_range
+    <nerf_lightning.geometry.space.SceneSpace.ray_range>`); packed samples of the steps in occupied cells.
 
-    Steps are ``step_size`` long from where a ray enters the box (after ``near``), shifted by one random
-    fraction of a step per ray when ``perturb``; the last is cut at the exit (or ``far``), so that no sample
-    reaches beyond far. With ``cone_angle`` > 0 a step at distance t is ``max(step_size, cone_angle * t)``
-    long instead (:func:`step_edges`, the same for every ray), and a ray's first step is the first of them
-    inside the box. A contracted grid has no box to enter: rays run from near to far. A step is kept where its
-    midpoint lies in an occupied cell. With ``density_fn`` the kept steps are evaluated once without
-    gradients, and those with opacity below ``alpha_threshold`` or transmittance below ``early_stop_eps``
-    (the ray has already ended) are dropped as well.
+    Steps are ``step_size`` long from ``t_enter``, shifted by one random fraction of a step per ray when
+    ``perturb``; the last is cut at ``t_exit``, so that no sample reaches beyond it. With ``cone_angle`` > 0 a step
+    at distance t is ``max(step_size, cone_angle * t)`` long instead (:func:`step_edges`, the same for every ray),
+    and a ray's first step is the first of them after ``t_enter``. A step is kept where its midpoint, passed
+    through ``to_field`` (the scene's contraction, if any), lies in an occupied cell. With ``density_fn`` (field-space
+    points -> densities) the kept steps are evaluated once without gradients, and those with opacity below
+    ``alpha_threshold`` or transmittance below ``early_stop_eps`` (the ray has already ended) are dropped as well.
     """
     n_rays = rays_o.shape[0]
-    if grid.contracted:
-        t_enter, t_exit = rays_o.new_full((n_rays,), near), rays_o.new_full((n_rays,), far)
-    else:
-        t_enter, t_exit = ray_aabb_intersect(rays_o, rays_d, grid.aabb)
-        t_enter, t_exit = t_enter.clamp(min=near), t_exit.clamp(max=far)
+    to_field = to_field or (lambda points: points)
     if perturb:
-        shift = torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype).to(rays_o.device)
+        shift = torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype, device=rays_o.device)
     else:
         shift = torch.zeros(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device)
-    if cone_angle > 0.0 and n_rays:
-        edges = step_edges(float(t_enter.min()), float(t_exit.max()), step_size, cone_angle).to(rays_o)
+    hit = t_exit > t_enter
+    if cone_angle > 0.0 and bool(hit.any()):
+        edges = step_edges(float(t_enter[hit].min()), float(t_exit[hit].max()), step_size, cone_angle).to(rays_o.device)
         widths = edges[1:] - edges[:-1]
         t_starts = edges[:-1] + shift * widths  # (N, K)
         t_ends = torch.minimum(edges[1:] + shift * torch.cat([widths[1:], widths[-1:]]), t_exit[:, None])
-        t_starts = torch.where(t_starts >= t_enter[:, None], t_starts, t_exit[:, None])  # before the box: dropped below
+        t_starts = torch.where(t_starts >= t_enter[:, None], t_starts, t_exit[:, None])  # before the range: dropped below
     else:
         length = (t_exit - t_enter).clamp(min=0.0)
         n_steps = int(math.ceil(float(length.max()) / step_size)) if n_rays else 0
@@ -207,16 +189,16 @@ def march_rays(
         t_starts = t_enter[:, None] + (steps + shift) * step_size  # (N, n_steps)
         t_ends = torch.minimum(t_starts + step_size, t_exit[:, None])
     midpoints = rays_o[:, None, :] + rays_d[:, None, :] * (0.5 * (t_starts + t_ends))[..., None]
-    keep = (t_starts < t_exit[:, None]) & grid.occupied(midpoints)
+    keep = (t_starts < t_exit[:, None]) & grid.occupied(to_field(midpoints))
     ray_indices = keep.nonzero()[:, 0]  # row-major: by ray, then by distance
-    samples = PackedSamples(ray_indices, t_starts[keep], t_ends[keep])
-    if density_fn is None or (alpha_threshold <= 0.0 and early_stop_eps <= 0.0) or len(ray_indices) == 0:
+    samples = RaySamples(ray_indices, t_starts[keep], t_ends[keep], n_rays)
+    if density_fn is None or (alpha_threshold <= 0.0 and early_stop_eps <= 0.0) or len(samples) == 0:
         return samples
     with torch.no_grad():
         t_mid = 0.5 * (samples.t_starts + samples.t_ends)
-        density = density_fn(rays_o[ray_indices] + rays_d[ray_indices] * t_mid[:, None])
+        density = density_fn(to_field(rays_o[ray_indices] + rays_d[ray_indices] * t_mid[:, None]))
         optical_depth = density * (samples.t_ends - samples.t_starts)
         alpha = 1.0 - torch.exp(-optical_depth)
         transmittance = torch.exp(-exclusive_sum_packed(optical_depth, ray_indices, n_rays))
         keep = (alpha >= alpha_threshold) & (transmittance >= early_stop_eps)
-    return PackedSamples(*(part[keep] for part in samples))
+    return RaySamples(ray_indices[keep], samples.t_starts[keep], samples.t_ends[keep], n_rays)

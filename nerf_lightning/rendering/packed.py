@@ -7,20 +7,54 @@ interval each sample stands for). Sums over a ray's samples are segment sums, do
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+from typing import Any
+
 import torch
+
+
+@dataclass
+class RaySamples:
+    """M packed samples of N rays (see the module's docstring).
+
+    Attributes:
+        ray_indices: (M,) long, non-decreasing.
+        t_starts, t_ends: (M,) each sample's interval along its ray, in the sampling space's t.
+        n_rays: N.
+        extras: what the sampler computed on the way and hands to its own :meth:`RaySampler.losses` (e.g. the coarse
+            network's colours (N, 3)), kept out of the renderer.
+    """
+
+    ray_indices: torch.Tensor
+    t_starts: torch.Tensor
+    t_ends: torch.Tensor
+    n_rays: int
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.ray_indices.shape[0])
+
+    @classmethod
+    def from_edges(cls, edges: torch.Tensor, **extras: Any) -> RaySamples:
+        """(N, S + 1) sorted interval edges of every ray -> the N x S intervals, packed."""
+        n_rays, n_samples = edges.shape[0], edges.shape[1] - 1
+        ray_indices = torch.arange(n_rays, device=edges.device).repeat_interleave(n_samples)
+        return cls(ray_indices, edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1), n_rays, dict(extras))
 
 
 def exclusive_sum_packed(values: torch.Tensor, ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
     """(M,) values -> (M,) the sum of the earlier values of the same ray (0 for a ray's first sample).
 
-    Computed in float64 from one running sum over the whole batch, less each ray's running sum at its start,
-    so that long batches do not lose precision.
+    Each ray's values are laid out in a row of an (N, longest ray) table and summed along the row, so every sum
+    restarts at its ray and adds up only that ray's values: float32 is as exact as the values themselves (a
+    running sum over the whole batch, less each ray's start, loses the small terms of later rays to the large total).
     """
-    values64 = values.double()
-    running = torch.cumsum(values64, dim=0)
-    per_ray = torch.zeros(n_rays, dtype=torch.float64, device=values.device).index_add_(0, ray_indices, values64)
-    ray_start = torch.cumsum(per_ray, dim=0) - per_ray  # (N,) running sum before each ray's first sample
-    return (running - values64 - ray_start[ray_indices]).to(values.dtype)
+    if values.numel() == 0:
+        return values.clone()
+    counts = torch.bincount(ray_indices, minlength=n_rays)
+    rank = torch.arange(values.shape[0], device=values.device) - (torch.cumsum(counts, 0) - counts)[ray_indices]  # (M,) within its ray
+    table = values.new_zeros(n_rays, int(counts.max()) + 1).index_put((ray_indices, rank + 1), values)
+    return table.cumsum(dim=1)[ray_indices, rank]
 
 
 def composite_packed(
@@ -40,7 +74,7 @@ def composite_packed(
         ray_indices: (M,) non-decreasing ray of each sample; n_rays: N;
         background: (3,) blended in by 1 - accumulation, None for black.
         transmittance_before: (N,) the transmittance each ray arrives with (from samples composited earlier,
-            see :func:`~nerf_lightning.rendering.renderer.render_rays_marched`); None for 1.
+            see :class:`~nerf_lightning.rendering.renderer.VolumeRenderer`); None for 1.
 
     Returns:
         ``rgb`` (N, 3), ``depth`` (N,) (expected distance of the interval midpoints, given that the ray ends),

@@ -1,123 +1,86 @@
-"""Rendering rays through a field: stratified samples, optional hierarchical samples, compositing."""
+"""The one renderer: packed samples of any sampler through a field to pixels, in rounds, stopping spent rays."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
 
 import torch
 
-from nerf_lightning.rendering.occupancy import OccupancyGrid, march_rays
-from nerf_lightning.rendering.packed import composite_packed
-from nerf_lightning.rendering.samplers import deltas_of, sample_intervals, sample_pdf
-from nerf_lightning.rendering.volume import composite
-
-# a field: (points (N, S, 3), directions (N, S, 3)) -> {"rgb": (N, S, 3), "density": (N, S)}
-Field = Callable[[torch.Tensor, torch.Tensor], dict[str, torch.Tensor]]
+from nerf_lightning.fields.base import Field
+from nerf_lightning.geometry.space import Rays, SceneSpace
+from nerf_lightning.rendering.packed import RaySamples
 
 
-def _query(field: Field, rays_o, rays_d, t, deltas, background, directions):
-    points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]
-    out = field(points, directions[:, None, :].expand_as(points))
-    return composite(out["rgb"], out["density"], t, deltas, background)
+class VolumeRenderer:
+    """Volume rendering of packed samples (:mod:`nerf_lightning.rendering.volume`'s quadrature), in rounds.
 
+    The field is evaluated on the next ``samples_per_round`` samples of every ray still alive at a time; a ray
+    leaves once its transmittance is below ``early_stop_eps``, so the samples behind an opaque surface are never
+    evaluated (on a CPU most of a marched ray's cost) and no separate density pass is needed. With
+    ``early_stop_eps=0`` the result equals compositing every sample (:func:`~nerf_lightning.rendering.packed.composite_packed`).
 
-def render_rays(
-    field: Field,
-    rays_o: torch.Tensor,
-    rays_d: torch.Tensor,
-    near: float,
-    far: float,
-    n_samples: int,
-    perturb: bool,
-    background: torch.Tensor | None = None,
-    fine_field: Field | None = None,
-    n_fine_samples: int = 0,
-    generator: torch.Generator | None = None,
-    directions: torch.Tensor | None = None,
-) -> dict[str, torch.Tensor]:
-    """Render (N, 3) rays with unit directions.
-
-    ``directions``: (N, 3) unit view directions the field sees, where they differ from ``rays_d`` (NDC rays).
-
-    ``n_samples`` stratified samples between near and far go through ``field``. With a ``fine_field`` and
-    ``n_fine_samples`` > 0 (NeRF's hierarchical sampling), that many more samples are drawn from the coarse
-    weights by inverse-CDF sampling and the fine field renders the union of both sets; the coarse result is
-    returned too, under ``coarse_*`` keys, for its own loss.
-
-    Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,), ``weights`` (N, S), ``t`` (N, S).
+    Each round lays its samples out as an (alive rays, samples_per_round) table, so that the sums along a ray are
+    short float32 cumulative sums that restart at every ray.
     """
-    directions = rays_d if directions is None else directions
-    _, t, deltas = sample_intervals(rays_o, rays_d, near, far, n_samples, perturb, generator)
-    coarse = _query(field, rays_o, rays_d, t, deltas, background, directions)
-    coarse["t"] = t
-    if fine_field is None or n_fine_samples <= 0:
-        return coarse
-    mids = 0.5 * (t[:, 1:] + t[:, :-1])  # bin edges between the coarse samples
-    t_fine = sample_pdf(mids, coarse["weights"][:, 1:-1], n_fine_samples, perturb, generator)
-    t_all = torch.sort(torch.cat([t, t_fine], dim=-1), dim=-1).values
-    fine = _query(fine_field, rays_o, rays_d, t_all, deltas_of(t_all, (far - near) / max(n_samples - 1, 1)), background, directions)
-    fine["t"] = t_all
-    fine.update({f"coarse_{key}": value for key, value in coarse.items() if key in ("rgb", "depth", "accumulation")})
-    return fine
 
+    def __init__(self, early_stop_eps: float = 1e-4, samples_per_round: int = 16) -> None:
+        if samples_per_round < 1 or early_stop_eps < 0:
+            raise ValueError(f"VolumeRenderer needs samples_per_round >= 1 and early_stop_eps >= 0, got {samples_per_round}, {early_stop_eps}")
+        self.early_stop_eps, self.samples_per_round = early_stop_eps, samples_per_round
 
-def render_rays_marched(
-    field: Field,
-    grid: OccupancyGrid,
-    rays_o: torch.Tensor,
-    rays_d: torch.Tensor,
-    near: float,
-    far: float,
-    step_size: float,
-    perturb: bool,
-    background: torch.Tensor | None = None,
-    alpha_threshold: float = 0.0,
-    early_stop_eps: float = 1e-4,
-    samples_per_round: int = 16,
-    generator: torch.Generator | None = None,
-    directions: torch.Tensor | None = None,
-    cone_angle: float = 0.0,
-) -> dict[str, torch.Tensor]:
-    """Render (N, 3) rays with unit directions through the occupied cells of ``grid`` only (empty-space skipping).
+    def __call__(self, field: Field, rays: Rays, samples: RaySamples, space: SceneSpace) -> dict[str, torch.Tensor]:
+        """Render N rays from their packed samples.
 
-    The marcher (:func:`~nerf_lightning.rendering.occupancy.march_rays`) lists the steps in occupied cells;
-    the field is then evaluated in rounds, the next ``samples_per_round`` of each ray at a time, and a ray
-    leaves once its transmittance is below ``early_stop_eps``, so the samples behind an opaque surface are
-    never evaluated (on a CPU this is most of the saving; no extra density pass is needed). With
-    ``early_stop_eps=0`` the result equals compositing every listed sample. ``alpha_threshold`` > 0 also
-    drops nearly transparent steps, at the cost of a density pass (``field.density``) in the marcher.
+        Args:
+            field: evaluated at each interval's midpoint, passed through ``space.to_field``, with the ray's view direction.
+            rays: the N rays in the sampling space.
+            samples: M packed samples of them.
+            space: the scene space (the field-space map and the background).
 
-    ``directions``: (N, 3) unit view directions the field sees, where they differ from ``rays_d`` (NDC rays).
-    ``cone_angle`` > 0: steps grow with the distance (see :func:`~nerf_lightning.rendering.occupancy.march_rays`).
+        Returns:
+            ``rgb`` (N, 3) with the background blended in by 1 - accumulation; ``depth`` (N,) the expected t at
+            which a ray ends, given that it ends; ``accumulation`` (N,); ``weights`` (M,) each sample's weight
+            (0 for samples never evaluated); ``n_evaluated``, how many samples the field saw (an int).
+        """
+        n_rays, k = samples.n_rays, self.samples_per_round
+        device = rays.origins.device
+        counts = torch.bincount(samples.ray_indices, minlength=n_rays)
+        offsets = torch.cumsum(counts, 0) - counts
+        slots = torch.arange(k, device=device)
+        transmittance = rays.origins.new_ones(n_rays)
+        colour, accumulation, depth_sum = rays.origins.new_zeros(n_rays, 3), rays.origins.new_zeros(n_rays), rays.origins.new_zeros(n_rays)
+        evaluated_ids, evaluated_weights = [], []
+        n_rounds = math.ceil(int(counts.max()) / k) if len(samples) else 0
+        for first in range(0, n_rounds * k, k):
+            alive = (counts > first) & (transmittance.detach() >= self.early_stop_eps)
+            ray_ids = alive.nonzero()[:, 0]  # (A,)
+            if len(ray_ids) == 0:
+                break
+            slot = first + slots
+            valid = slot < counts[ray_ids, None]  # (A, k)
+            ids = (offsets[ray_ids, None] + slot)[valid]  # (m,) the round's samples, ray by ray
+            ray_of = ray_ids[:, None].expand_as(valid)[valid]
+            starts, ends = samples.t_starts[ids], samples.t_ends[ids]
+            mids = 0.5 * (starts + ends)
+            out = field(space.to_field(rays.points(ray_of, mids)), rays.viewdirs[ray_of])
+            optical_depth = torch.zeros(valid.shape, dtype=colour.dtype, device=device).masked_scatter(valid, (out["density"] * (ends - starts)).to(colour.dtype))
+            rgb = torch.zeros(*valid.shape, 3, dtype=colour.dtype, device=device).masked_scatter(valid[..., None], out["rgb"].to(colour.dtype))
+            depth_along = optical_depth.cumsum(dim=1)  # (A, k) inclusive
+            weights = transmittance[ray_ids, None] * torch.exp(optical_depth - depth_along) * (1.0 - torch.exp(-optical_depth))
+            colour = colour.index_add(0, ray_ids, (weights[..., None] * rgb).sum(dim=1))
+            accumulation = accumulation.index_add(0, ray_ids, weights.sum(dim=1))
+            depth_sum = depth_sum.index_add(0, ray_ids, (weights * torch.zeros_like(weights).masked_scatter(valid, mids)).sum(dim=1))
+            transmittance = transmittance.index_copy(0, ray_ids, transmittance[ray_ids] * torch.exp(-depth_along[:, -1]))
+            evaluated_ids.append(ids)
+            evaluated_weights.append(weights[valid])
+        colour = colour + (1.0 - accumulation)[:, None] * space.background.to(colour)
+        weights_all = rays.origins.new_zeros(len(samples))
+        if evaluated_ids:
+            weights_all = weights_all.index_put((torch.cat(evaluated_ids),), torch.cat(evaluated_weights))
+        return {
+            "rgb": colour, "depth": depth_sum / accumulation.clamp(min=1e-10), "accumulation": accumulation,
+            "weights": weights_all, "n_evaluated": sum(len(ids) for ids in evaluated_ids),
+        }
 
-    Returns ``rgb`` (N, 3), ``depth`` (N,), ``accumulation`` (N,) and ``n_samples`` (how many samples the
-    field was evaluated at, a 0-d tensor).
-    """
-    n_rays = rays_o.shape[0]
-    directions = rays_d if directions is None else directions
-    ray_indices, t_starts, t_ends = march_rays(
-        grid, rays_o, rays_d, near, far, step_size, perturb, generator,
-        density_fn=field.density if alpha_threshold > 0 else None, alpha_threshold=alpha_threshold, cone_angle=cone_angle,
-    )
-    counts = torch.bincount(ray_indices, minlength=n_rays)
-    rank = torch.arange(len(ray_indices), device=rays_o.device) - (torch.cumsum(counts, 0) - counts)[ray_indices]  # (M,) within its ray
-    transmittance = rays_o.new_ones(n_rays)
-    colour, accumulation, depth_sum = rays_o.new_zeros(n_rays, 3), rays_o.new_zeros(n_rays), rays_o.new_zeros(n_rays)
-    evaluated = 0
-    for first in range(0, int(counts.max()) if len(counts) else 0, samples_per_round):
-        alive = transmittance.detach() >= early_stop_eps
-        chosen = (rank >= first) & (rank < first + samples_per_round) & alive[ray_indices]
-        if not chosen.any():
-            break
-        indices, starts, ends = ray_indices[chosen], t_starts[chosen], t_ends[chosen]
-        points = rays_o[indices] + rays_d[indices] * (0.5 * (starts + ends))[:, None]
-        out = field(points, directions[indices])
-        part = composite_packed(out["rgb"], out["density"], starts, ends, indices, n_rays, transmittance_before=transmittance)
-        colour, accumulation = colour + part["rgb"], accumulation + part["accumulation"]
-        depth_sum = depth_sum + part["depth"] * part["accumulation"]
-        transmittance = transmittance - part["accumulation"]
-        evaluated += len(indices)
-    if background is not None:
-        colour = colour + (1.0 - accumulation)[:, None] * background.to(colour)
-    depth = depth_sum / accumulation.clamp(min=1e-10)
-    return {"rgb": colour, "depth": depth, "accumulation": accumulation, "n_samples": torch.tensor(evaluated, device=rays_o.device)}
+    def __repr__(self) -> str:
+        return f"VolumeRenderer(early_stop_eps={self.early_stop_eps:g}, samples_per_round={self.samples_per_round})"

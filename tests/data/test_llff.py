@@ -116,7 +116,7 @@ def test_ndc_rays_pass_through_the_ndc_image_of_every_world_point_on_them():
 def test_a_forward_facing_capture_trains_in_ndc_and_renders_from_its_checkpoint(procedural_scene, tmp_path, monkeypatch, scene_cache):
     from nerf_lightning.checkpoints import load_model
     from nerf_lightning.config import compose_config
-    from nerf_lightning.train import train
+    from nerf_lightning.training import train
 
     # the procedural cameras within 35 degrees of one of them: a forward-facing capture
     train_views = procedural_scene.train
@@ -126,10 +126,10 @@ def test_a_forward_facing_capture_trains_in_ndc_and_renders_from_its_checkpoint(
     run = tmp_path / "run"
     metrics = train(compose_config([
         "experiment=fast_llff", f"data.root={root}", "data.scene.downscale=2", "data.scene.holdout_every=4",
-        "model.field.n_levels=4", "model.field.log2_table_size=14", "model.field.max_resolution=128", "model.occupancy_grid.resolution=16",
+        "model.field.encoding.n_levels=4", "model.field.encoding.log2_table_size=14", "model.field.encoding.max_resolution=128", "model.sampler.grid.resolution=16",
         "data.batch_size=256", "trainer.max_steps=20", "data.val_every=20", "trainer.enable_progress_bar=false",
         "trainer.enable_model_summary=false", f"paths.output_dir={run}",
     ]))
     assert metrics["step"] == 20 and np.isfinite(metrics["val/psnr"])
     model, _ = load_model(run / "checkpoints" / "last.ckpt")
-    assert model.ndc["focal"] == pytest.approx(float(train_views.K[0, 0, 0])) and (model.near, model.far) == (0.0, 1.0)
+    assert model.space.ndc.focal == pytest.approx(float(train_views.K[0, 0, 0])) and (model.space.near, model.space.far) == (0.0, 1.0)

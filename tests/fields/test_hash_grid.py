@@ -5,8 +5,13 @@ import math
 import pytest
 import torch
 
-from nerf_lightning.fields import GridField, HashGridEncoding, HashGridField, SphericalHarmonicsEncoding, TensorVMEncoding
+from nerf_lightning.fields import GridField, HashGridEncoding, SphericalHarmonicsEncoding, TensorVMEncoding
 from nerf_lightning.fields.hash_grid import level_resolutions
+
+
+def hash_grid_field(aabb, **encoding) -> GridField:
+    """The hash-grid field as the configs build it: GridField(encoding=HashGridEncoding)."""
+    return GridField(aabb=aabb, encoding=HashGridEncoding(**encoding))
 
 
 def small_encoding(**overrides) -> HashGridEncoding:
@@ -109,7 +114,7 @@ def test_spherical_harmonics_are_orthonormal_on_the_sphere():
 
 
 def test_hash_grid_field_outputs_and_is_empty_outside_its_box():
-    field = HashGridField(aabb=[-1, -1, -1, 1, 1, 1], n_levels=4, log2_table_size=12, base_resolution=4, max_resolution=32)
+    field = hash_grid_field(aabb=[-1, -1, -1, 1, 1, 1], n_levels=4, log2_table_size=12, base_resolution=4, max_resolution=32)
     points = torch.tensor([[0.0, 0.0, 0.0], [0.5, -0.5, 0.2], [1.5, 0.0, 0.0], [0.0, 0.0, -3.0]])
     directions = torch.nn.functional.normalize(torch.randn(4, 3), dim=-1)
     out = field(points, directions)
@@ -119,12 +124,12 @@ def test_hash_grid_field_outputs_and_is_empty_outside_its_box():
     out["density"].sum().backward()
     assert field.encoding.table.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="aabb"):
-        HashGridField(aabb=[1, 1, 1, -1, -1, -1])
+        hash_grid_field(aabb=[1, 1, 1, -1, -1, -1])
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_hash_grid_field_gives_the_same_result_on_cuda():
-    field = HashGridField(aabb=[-1, -1, -1, 1, 1, 1], n_levels=8, log2_table_size=14, max_resolution=256)
+    field = hash_grid_field(aabb=[-1, -1, -1, 1, 1, 1], n_levels=8, log2_table_size=14, max_resolution=256)
     points = torch.rand(1000, 3) * 2 - 1
     directions = torch.nn.functional.normalize(torch.randn(1000, 3), dim=-1)
     on_cpu = field(points, directions)

@@ -56,6 +56,32 @@ def test_pixel_to_ray_unit_directions_through_the_pixel():
     torch.testing.assert_close(rays_d[:, 0], c2w[:, :3, 2])
 
 
+def test_the_courses_unbatched_shapes_give_the_batched_results():
+    K, c2w = random_cameras(4)
+    generator = torch.Generator().manual_seed(2)
+    uv = torch.rand(4, 30, 2, generator=generator) * torch.tensor([100.0, 80.0])
+    depth = 1.0 + torch.rand(4, 30, 1, generator=generator)
+    batched_points = camera_to_world(c2w, pixel_to_camera(K, uv, depth))
+    batched_o, batched_d = pixel_to_ray(K, c2w, uv)
+    # one camera: K (3, 3), c2w (4, 4), uv (N, 2), s (N,) or (N, 1)
+    x_c = pixel_to_camera(K[0], uv[0], depth[0, :, 0])
+    assert x_c.shape == (30, 3)
+    torch.testing.assert_close(x_c, pixel_to_camera(K[0], uv[0], depth[0]))
+    torch.testing.assert_close(camera_to_world(c2w[0], x_c), batched_points[0])
+    rays_o, rays_d = pixel_to_ray(K[0], c2w[0], uv[0])
+    torch.testing.assert_close(rays_o, batched_o[0]) and torch.testing.assert_close(rays_d, batched_d[0])
+    # a camera per pixel (random rays across images): c2w (N, 4, 4), uv (N, 2)
+    camera_of = torch.tensor([0, 3, 1, 1, 2, 0])
+    pixel_of = torch.tensor([5, 7, 0, 29, 13, 2])
+    rays_o, rays_d = pixel_to_ray(K[0], c2w[camera_of], uv[camera_of, pixel_of])
+    torch.testing.assert_close(rays_o, batched_o[camera_of, pixel_of])
+    torch.testing.assert_close(rays_d, batched_d[camera_of, pixel_of])
+    x_c = pixel_to_camera(K[0], uv[camera_of, pixel_of], depth[camera_of, pixel_of])
+    torch.testing.assert_close(camera_to_world(c2w[camera_of], x_c), batched_points[camera_of, pixel_of])
+    with pytest.raises(ValueError, match=r"c2w of shape \(4, 4, 4\) with 6 points"):
+        camera_to_world(c2w, x_c)
+
+
 def test_image_rays_are_row_major_pixel_centres():
     K, c2w = random_cameras(1)
     rays_o, rays_d = image_rays(K, c2w, 80, 100)

@@ -1,13 +1,12 @@
-"""Scene contraction (Mip-NeRF 360, max-norm) and the map from the world to a grid's unit cube."""
+"""Scene contraction (Mip-NeRF 360, max-norm), as the scene space applies it before a field."""
 
 import math
 
 import pytest
 import torch
 
-from nerf_lightning.geometry.contraction import contract, uncontract, unit_to_world, world_to_unit
-
-AABB = torch.tensor([-1.0, -2.0, 0.0, 3.0, 2.0, 1.0])
+from nerf_lightning.geometry.contraction import Contraction, contract, uncontract
+from nerf_lightning.geometry.space import SceneSpace
 
 
 def test_contract_keeps_the_unit_box_and_squeezes_the_rest_below_2():
@@ -32,29 +31,29 @@ def test_uncontract_inverts_contract():
     torch.testing.assert_close(uncontract(contract(points)), points, rtol=1e-6, atol=1e-9)
 
 
-@pytest.mark.parametrize("contracted", [False, True])
-def test_world_to_unit_and_back(contracted):
-    points = torch.randn(300, 3, dtype=torch.float64) * 5.0
-    unit = world_to_unit(points, AABB.double(), contracted)
-    torch.testing.assert_close(unit_to_world(unit, AABB.double(), contracted), points, rtol=1e-6, atol=1e-9)
-    corners_low, corners_high = world_to_unit(AABB[:3], AABB, contracted), world_to_unit(AABB[3:], AABB, contracted)
-    low, high = (0.25, 0.75) if contracted else (0.0, 1.0)
-    torch.testing.assert_close(corners_low, torch.full((3,), low))
-    torch.testing.assert_close(corners_high, torch.full((3,), high))
-    if contracted:  # all of space lands inside the cube
-        assert bool(((unit >= 0) & (unit <= 1)).all())
-        # a point far out along +x (the box's centre is (1, 0, 0.5)) lands on the cube's +x face, centred
-        torch.testing.assert_close(world_to_unit(torch.tensor([1e9, 0.0, 0.5]), AABB, True), torch.tensor([1.0, 0.5, 0.5]))
+def test_the_contraction_object_maps_all_of_space_into_its_bounds_and_back():
+    contraction = Contraction()
+    points = torch.randn(300, 3, dtype=torch.float64) * 10.0 ** torch.randint(-1, 9, (300, 1))
+    inside = contraction(points)
+    assert bool((inside.abs() < contraction.bounds[3]).all())
+    torch.testing.assert_close(contraction.inverse(inside[points.abs().amax(-1) < 1e5]), points[points.abs().amax(-1) < 1e5], rtol=1e-6, atol=1e-9)
+    # a point far out along +x lands on the cube's +x face
+    torch.testing.assert_close(contraction(torch.tensor([1e9, 0.0, 0.5])), torch.tensor([2.0, 0.0, 0.0]), atol=1e-8, rtol=0)
 
 
-def test_a_contracted_grid_field_has_density_everywhere_a_bounded_one_only_in_its_box():
-    from nerf_lightning.fields import HashGridField
+def test_a_contracted_scene_space_feeds_a_grid_field_contracted_points_with_density_everywhere():
+    from nerf_lightning.fields import GridField, HashGridEncoding
 
     points = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, -40.0, 3.0]])
-    kwargs = dict(aabb=[-1, -1, -1, 1, 1, 1], n_levels=2, log2_table_size=10, base_resolution=4, max_resolution=8)
+    encoding = dict(n_levels=2, log2_table_size=10, base_resolution=4, max_resolution=8)
     torch.manual_seed(0)
-    bounded, unbounded = HashGridField(**kwargs), HashGridField(**kwargs, contracted=True)
+    bounded = GridField(aabb=[-1, -1, -1, 1, 1, 1], encoding=HashGridEncoding(**encoding))
+    unbounded = GridField(aabb=list(Contraction.bounds), encoding=HashGridEncoding(**encoding))
+    space = SceneSpace(0.05, 1e3, contraction=Contraction())
     with torch.no_grad():
         assert bool((bounded.density(points)[1:] == 0).all()) and float(bounded.density(points)[0]) > 0
-        assert bool((unbounded.density(points) > 0).all())
-        assert math.isfinite(float(unbounded.density(torch.tensor([[1e12, 0.0, 0.0]]))[0]))
+        assert bool((unbounded.density(space.to_field(points)) > 0).all())
+        assert math.isfinite(float(unbounded.density(space.to_field(torch.tensor([[1e12, 0.0, 0.0]])))[0]))
+    space.check_box(unbounded.aabb, "model.field.aabb")
+    with pytest.raises(ValueError, match=r"model.field.aabb is .* a contracted scene"):
+        space.check_box(bounded.aabb, "model.field.aabb")

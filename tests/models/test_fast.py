@@ -4,18 +4,16 @@ import json
 
 import pytest
 import torch
-from hydra.errors import InstantiationException
-from hydra.utils import instantiate
 
 from nerf_lightning.checkpoints import load_model
 from nerf_lightning.config import compose_config
-from nerf_lightning.train import train
+from nerf_lightning.training import train
 from tests.conftest import run_cli
 
 # experiment=fast made smaller for a test: 8 levels up to 256 cells, 2^15 rows, a 32^3 grid, 512 rays a step,
 # 300 steps: about 15 s on 2 cores.
-QUICK_FAST = ["experiment=fast", "model.field.n_levels=8", "model.field.log2_table_size=15", "model.field.max_resolution=256",
-              "model.occupancy_grid.resolution=32", "data.batch_size=512", "data.val_views=2", "data.val_every=300",
+QUICK_FAST = ["experiment=fast", "model.field.encoding.n_levels=8", "model.field.encoding.log2_table_size=15", "model.field.encoding.max_resolution=256",
+              "model.sampler.grid.resolution=32", "data.batch_size=512", "data.val_views=2", "data.val_every=300",
               "trainer.max_steps=300", "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
 
 # Why these bars (the same views and reasoning as the NeRF test in test_radiance_field.py): the view's mean colour
@@ -50,7 +48,7 @@ def test_quick_fast_fit_passes_the_bars_with_few_samples_a_ray(trained):
 def test_fast_checkpoint_keeps_the_grid_and_renders(trained, tmp_path, monkeypatch, scene_cache):
     run, metrics = trained
     model, _ = load_model(run / "checkpoints" / "last.ckpt")
-    assert 0.0 < model.occupancy_grid.binary.float().mean() < 0.5  # the trained grid, not the all-occupied start
+    assert 0.0 < model.sampler.grid.binary.float().mean() < 0.5  # the trained grid, not the all-occupied start
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     run_cli("evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", "split=val", "max_views=2", f"output_dir={tmp_path / 'eval'}", cwd=tmp_path)
     result = json.loads((tmp_path / "eval" / "eval.json").read_text())
@@ -61,18 +59,13 @@ def test_the_paper_mlp_trains_with_the_occupancy_grid(make_config, scene_cache, 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     cfg = make_config(
         "experiment=nerf_procedural", "model.field.hidden_width=32", "model.field.hidden_layers=2", "model.field.view_width=16",
-        "model.occupancy_grid={_target_: nerf_lightning.rendering.OccupancyGrid, aabb: [-1.3, -1.3, -1.3, 1.3, 1.3, 1.3], "
-        "resolution: 16, update_every: 4, warmup_steps: 8}",
+        "model/sampler=occupancy_grid", "~model.sampler.n_samples", "model.sampler.grid.aabb=[-1.3,-1.3,-1.3,1.3,1.3,1.3]", "model.sampler.grid.resolution=16",
+        "model.sampler.grid.update_every=4", "model.sampler.grid.warmup_steps=8", "model.sampler.step_size=0.0625",
         "data.batch_size=256", "trainer.max_steps=12", "data.val_every=12", "data.val_views=1",
         "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
     )
     metrics = train(cfg)
     assert "train/samples_per_ray" in metrics and "val/psnr" in metrics
     state = torch.load(cfg.paths.output_dir + "/checkpoints/last.ckpt", weights_only=False)["state_dict"]
-    assert state["occupancy_grid.binary"].shape == (16, 16, 16)
+    assert state["sampler.grid.binary"].shape == (16, 16, 16)
 
-
-def test_occupancy_grid_and_hierarchical_sampling_do_not_mix():
-    cfg = compose_config(["experiment=nerf_blender_grid", "data.root=unused", "model.fine_field=${model.field}", "model.n_fine_samples=64"])
-    with pytest.raises(InstantiationException, match="fine_field=null"):
-        instantiate(cfg.model)

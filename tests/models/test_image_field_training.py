@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from nerf_lightning.train import train
+from nerf_lightning.training import train
 
 QUICK = ["experiment=image", "data.downscale=2", "data.batch_size=4096", "trainer.max_steps=300", "data.val_steps=[]",
          "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false", "callbacks=none", "~logger"]

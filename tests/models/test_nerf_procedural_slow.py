@@ -3,13 +3,17 @@
 Run with ``.venv/bin/python -m pytest -m slow``.
 """
 
+import numpy as np
 import pytest
+import torch
 
+from nerf_lightning.cli.export import export
 from nerf_lightning.config import compose_config
 from nerf_lightning.data.formats import load_procedural
-from nerf_lightning.data.formats.surface import chamfer_to_surface
-from nerf_lightning.export import export, read_ply_vertices
-from nerf_lightning.train import train
+from nerf_lightning.data.formats.procedural import surface_distance
+from nerf_lightning.mesh import read_mesh
+from nerf_lightning.metrics import chamfer_distance
+from nerf_lightning.training import train
 
 # Measured with these settings (seed 0, docs/benchmarks.md): val PSNR 25.5 dB, SSIM 0.93, depth error 0.058,
 # the mesh's Chamfer distance to the true surfaces 0.021 (one grid step of the 128^3 export is 0.024).
@@ -28,6 +32,7 @@ def test_nerf_procedural_preset_reaches_its_figures(tmp_path, scene_cache, monke
     assert metrics["val/depth_error"] < 0.1
 
     mesh = export(compose_config([f"ckpt_path={run / 'checkpoints' / 'best.ckpt'}", f"output_dir={tmp_path / 'mesh'}"], config_name="export"))
-    vertices, _ = read_ply_vertices(mesh)
-    distances = chamfer_to_surface(vertices, load_procedural(cache_dir=scene_cache).splits["test"])
+    vertices = torch.from_numpy(np.asarray(read_mesh(mesh).vertices)).double()
+    surface = load_procedural(cache_dir=scene_cache).splits["test"].surface_points()
+    distances = chamfer_distance(vertices, surface, surface_distance(vertices))
     assert distances["chamfer"] < 0.05

@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from nerf_lightning.config import compose_config
-from nerf_lightning.export import read_ply_vertices
-from nerf_lightning.train import train
+from nerf_lightning.mesh import read_mesh
+from nerf_lightning.training import train
 from tests.conftest import run_cli
 
 # A small NeRF (3 x 64, one network, 32 samples a ray, 512 rays a step), 600 steps: about 14 s on 2 cores.
 QUICK = ["experiment=nerf_procedural", "model.field.hidden_width=64", "model.field.hidden_layers=3", "model.field.view_width=32",
-         "model.n_samples=32", "data.batch_size=512", "data.val_views=2", "data.val_every=300", "trainer.max_steps=600",
+         "model.sampler.n_samples=32", "data.batch_size=512", "data.val_views=2", "data.val_every=300", "trainer.max_steps=600",
          "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
 
 # Why these bars, on the two validation views (val views 0 and 9 of the procedural scene):
@@ -84,18 +84,24 @@ def test_render_writes_rgb_and_depth_videos(trained, tmp_path, monkeypatch, scen
 
 def test_export_writes_a_coloured_mesh(trained, tmp_path):
     run, _ = trained
-    run_cli("export", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", "resolution=48", "threshold=5", f"output_dir={tmp_path / 'mesh'}", cwd=tmp_path)
-    vertices, colours = read_ply_vertices(tmp_path / "mesh" / "mesh.ply")
+    for keep in ("all", "100"):
+        run_cli("export", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", "resolution=48", "threshold=5", f"keep={keep}",
+                f"output_dir={tmp_path / keep}", cwd=tmp_path)
+    everything, kept = read_mesh(tmp_path / "all" / "mesh.ply"), read_mesh(tmp_path / "100" / "mesh.ply")
+    vertices, colours = np.asarray(everything.vertices), np.asarray(everything.visual.vertex_colors)[:, :3]
     assert len(vertices) > 500 and colours.shape == (len(vertices), 3)
     assert (np.abs(vertices) <= 1.5 + 1e-5).all()  # inside the default bounds
+    # keep=100 (the default) drops the pieces of fewer than 100 faces and nothing else
+    sizes = [len(piece.faces) for piece in everything.split(only_watertight=False)]
+    assert len(kept.faces) == sum(size for size in sizes if size >= 100) < len(everything.faces)
 
 
 def test_hierarchical_sampling_trains_both_networks(make_config, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    cfg = make_config(*QUICK, "model.fine_field=${model.field}", "model.n_fine_samples=16", "trainer.max_steps=3", "data.val_every=3",
-                      "data.val_views=1", "model.chunk_size=2048")
+    cfg = make_config(*QUICK, "model/sampler=hierarchical", "model.sampler.n_samples=32", "model.sampler.n_fine_samples=16",
+                      "trainer.max_steps=3", "data.val_every=3", "data.val_views=1", "model.chunk_size=2048")
     metrics = train(cfg)
-    assert {"train/psnr", "train/psnr_coarse", "val/psnr"} <= metrics.keys()
+    assert {"train/psnr", "train/loss_coarse_rgb", "val/psnr"} <= metrics.keys()
     model = torch.load(cfg.paths.output_dir + "/checkpoints/last.ckpt", weights_only=False)["state_dict"]
-    assert any(key.startswith("fine_field.") for key in model) and any(key.startswith("field.") for key in model)
+    assert any(key.startswith("sampler.coarse_field.") for key in model) and any(key.startswith("field.") for key in model)
 

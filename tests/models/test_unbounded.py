@@ -12,9 +12,9 @@ from nerf_lightning.checkpoints import load_model
 from nerf_lightning.config import compose_config
 from nerf_lightning.data.formats import load_transforms
 from nerf_lightning.data.formats.transforms import apply_similarity
-from nerf_lightning.export import read_ply_vertices
+from nerf_lightning.mesh import read_mesh
 from nerf_lightning.geometry.cameras import opengl_to_opencv
-from nerf_lightning.train import train
+from nerf_lightning.training import train
 from tests.conftest import run_cli
 from tests.data.test_transforms import write_transforms
 
@@ -22,8 +22,8 @@ from tests.data.test_transforms import write_transforms
 CAPTURE_FROM_PROCEDURAL = torch.tensor([[0.0, -3.0, 0.0, 5.0], [3.0, 0.0, 0.0, -2.0], [0.0, 0.0, 3.0, 7.0], [0.0, 0.0, 0.0, 1.0]])
 HELD_OUT = list(range(0, 60, 10))  # holdout_every=10 over the 60 frames
 
-QUICK_UNBOUNDED = ["experiment=fast_unbounded", "data.scene.downscale=2", "data.scene.holdout_every=10", "model.field.n_levels=6",
-                   "model.field.log2_table_size=15", "model.field.max_resolution=256", "model.occupancy_grid.resolution=32",
+QUICK_UNBOUNDED = ["experiment=fast_unbounded", "data.scene.downscale=2", "data.scene.holdout_every=10", "model.field.encoding.n_levels=6",
+                   "model.field.encoding.log2_table_size=15", "model.field.encoding.max_resolution=256", "model.sampler.grid.resolution=32",
                    "data.batch_size=512", "data.val_views=2", "data.val_every=300", "trainer.max_steps=300",
                    "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
 
@@ -56,11 +56,12 @@ def test_an_unbounded_capture_trains_with_a_contracted_field(trained):
     run, metrics = trained
     assert metrics["step"] == 300 and metrics["val/psnr"] > PSNR_BAR_DB
     model, _ = load_model(run / "checkpoints" / "last.ckpt")
-    assert model.field.contracted and model.occupancy_grid.contracted and model.cone_angle > 0
+    assert model.space.contraction is not None and model.sampler.cone_angle > 0
+    assert model.field.aabb.tolist() == model.sampler.grid.aabb.tolist() == list(model.space.contraction.bounds)
     # the loader's similarity (capture -> scene) is kept: it takes the subject the cameras look at to the origin
-    subject = model.world_from_capture.double() @ torch.cat([CAPTURE_FROM_PROCEDURAL[:3, 3], torch.ones(1)]).double()
+    subject = model.space.world_from_capture.double() @ torch.cat([CAPTURE_FROM_PROCEDURAL[:3, 3], torch.ones(1)]).double()
     torch.testing.assert_close(subject[:3], torch.zeros(3, dtype=torch.float64), atol=1e-3, rtol=0)
-    assert 0.0 < model.occupancy_grid.binary.float().mean() < 1.0
+    assert 0.0 < model.sampler.grid.binary.float().mean() < 1.0
 
 
 def test_eval_on_a_second_file_of_the_capture_matches_the_held_out_split(trained, capture, tmp_path):
@@ -83,10 +84,10 @@ def test_export_and_render_map_back_to_the_capture(trained, capture, tmp_path):
     model, _ = load_model(ckpt)
     for frame in ("scene", "capture"):
         run_cli("export", f"ckpt_path={ckpt}", "resolution=48", "threshold=5", f"frame={frame}", f"output_dir={tmp_path / frame}", cwd=tmp_path)
-    scene_vertices, _ = read_ply_vertices(tmp_path / "scene" / "mesh.ply")
-    capture_vertices, _ = read_ply_vertices(tmp_path / "capture" / "mesh.ply")
+    scene_vertices = np.asarray(read_mesh(tmp_path / "scene" / "mesh.ply").vertices)
+    capture_vertices = np.asarray(read_mesh(tmp_path / "capture" / "mesh.ply").vertices)
     assert len(scene_vertices) > 100 and len(scene_vertices) == len(capture_vertices)
-    world_from_capture = model.world_from_capture.double().numpy()
+    world_from_capture = model.space.world_from_capture.double().numpy()
     mapped = capture_vertices @ world_from_capture[:3, :3].T + world_from_capture[:3, 3]
     np.testing.assert_allclose(mapped, scene_vertices, atol=1e-4)
     # the procedural surfaces lie within 1.3 of its origin: in the capture's coordinates, around (5, -2, 7) at 3x

@@ -6,18 +6,29 @@ import pytest
 import torch
 
 from nerf_lightning.data.formats.procedural import surface_distance, trace
+from nerf_lightning.geometry.contraction import Contraction
+from nerf_lightning.geometry.rays import ray_aabb_intersect
+from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.rendering import (
     OccupancyGrid,
+    OccupancyGridSampler,
+    VolumeRenderer,
     composite,
     composite_packed,
     exclusive_sum_packed,
     march_rays,
-    ray_aabb_intersect,
-    render_rays_marched,
 )
 from nerf_lightning.rendering.occupancy import step_edges
 
 UNIT_BOX = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+CUBE = list(Contraction.bounds)
+
+
+def march(grid, rays_o, rays_d, near, far, step_size, perturb, space=None, **options):
+    """march_rays over the range of a scene space from near to far (cut to the grid's box unless contracted)."""
+    space = space or SceneSpace(near, far)
+    t_enter, t_exit = space.ray_range(space.rays(rays_o, rays_d), grid.aabb)
+    return march_rays(grid, rays_o, rays_d, t_enter, t_exit, step_size, perturb, to_field=space.to_field, **options)
 
 
 def rays_towards_origin(count: int, seed: int, radius: float = 4.0, spread: float = 0.8) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,7 +105,8 @@ def test_marched_samples_lie_in_occupied_cells_between_near_and_far_in_order():
     rays_o, rays_d = rays_towards_origin(200, seed=1)
     near, far = 3.2, 4.6  # cuts into the box from both sides for many rays
     generator = torch.Generator().manual_seed(2)
-    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, near, far, step_size=0.05, perturb=True, generator=generator)
+    samples = march(grid, rays_o, rays_d, near, far, step_size=0.05, perturb=True, generator=generator)
+    ray_indices, t_starts, t_ends = samples.ray_indices, samples.t_starts, samples.t_ends
     assert len(ray_indices) > 100
     midpoints = rays_o[ray_indices] + rays_d[ray_indices] * (0.5 * (t_starts + t_ends))[:, None]
     assert grid.occupied(midpoints).all()
@@ -107,7 +119,8 @@ def test_marched_samples_lie_in_occupied_cells_between_near_and_far_in_order():
 def test_marching_an_all_occupied_grid_covers_each_ray_inside_the_box_exactly():
     grid = OccupancyGrid(UNIT_BOX, resolution=8)  # starts all occupied
     rays_o, rays_d = rays_towards_origin(50, seed=3)
-    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, 0.0, 10.0, step_size=0.03, perturb=False)
+    samples = march(grid, rays_o, rays_d, 0.0, 10.0, step_size=0.03, perturb=False)
+    ray_indices, t_starts, t_ends = samples.ray_indices, samples.t_starts, samples.t_ends
     enter, exit_ = ray_aabb_intersect(rays_o, rays_d, grid.aabb)
     covered = torch.zeros(50).index_add_(0, ray_indices, t_ends - t_starts)
     torch.testing.assert_close(covered, exit_ - enter, atol=1e-4, rtol=0)
@@ -118,25 +131,27 @@ def test_marching_an_all_occupied_grid_covers_each_ray_inside_the_box_exactly():
 def test_cone_steps_grow_with_the_distance():
     edges = step_edges(0.05, 100.0, 0.01, 1 / 64)
     widths, starts = edges[1:] - edges[:-1], edges[:-1]
-    assert float(edges[0]) == 0.05 and float(edges[-2]) < 100.0 <= float(edges[-1])
+    assert edges.dtype == torch.float32 and float(edges[0]) == pytest.approx(0.05) and float(edges[-2]) < 100.0 <= float(edges[-1])
     # each step is max(step, cone * t) long: constant up to t = 0.64, then 1/64 of the distance
     torch.testing.assert_close(widths, torch.maximum(torch.full_like(starts, 0.01), starts / 64), atol=0.01, rtol=0.02)
-    assert float(widths[0]) == pytest.approx(0.01) and float(widths[-1]) == pytest.approx(float(starts[-1]) / 64, rel=1e-6)
+    assert float(widths[0]) == pytest.approx(0.01, rel=1e-5) and float(widths[-1]) == pytest.approx(float(starts[-1]) / 64, rel=1e-5)  # float32
     assert len(edges) < 400  # 60 constant steps, then log(100 / 0.64) / log(1 + 1/64) geometric ones; 10 000 at a fixed step
 
 
 def test_a_contracted_grid_marches_every_ray_from_near_to_far_with_cone_steps():
-    grid = OccupancyGrid(UNIT_BOX, resolution=8, contracted=True)  # all occupied: all of space
+    grid = OccupancyGrid(CUBE, resolution=8)  # all occupied: all of space
     rays_o, rays_d = rays_towards_origin(40, seed=5, radius=0.5)  # inside the box
     near, far = 0.05, 50.0
-    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, near, far, step_size=0.02, perturb=False, cone_angle=1 / 32)
+    space = SceneSpace(near, far, contraction=Contraction())
+    samples = march(grid, rays_o, rays_d, near, far, step_size=0.02, perturb=False, space=space, cone_angle=1 / 32)
+    ray_indices, t_starts, t_ends = samples.ray_indices, samples.t_starts, samples.t_ends
     covered = torch.zeros(40).index_add_(0, ray_indices, t_ends - t_starts)
     torch.testing.assert_close(covered, torch.full((40,), far - near), rtol=1e-5, atol=1e-4)
     assert (torch.bincount(ray_indices, minlength=40) == len(step_edges(near, far, 0.02, 1 / 32)) - 1).all()
     # the cells far away are contracted ones: a grid whose outer shell is empty drops the far samples only
     grid.binary[1:-1, 1:-1, 1:-1] = True
     grid.binary[0], grid.binary[-1], grid.binary[:, 0], grid.binary[:, -1], grid.binary[:, :, 0], grid.binary[:, :, -1] = (False,) * 6
-    kept = march_rays(grid, rays_o, rays_d, near, far, step_size=0.02, perturb=False, cone_angle=1 / 32)
+    kept = march(grid, rays_o, rays_d, near, far, step_size=0.02, perturb=False, space=space, cone_angle=1 / 32)
     midpoints = rays_o[kept.ray_indices] + rays_d[kept.ray_indices] * (0.5 * (kept.t_starts + kept.t_ends))[:, None]
     norms = midpoints.abs().amax(-1)
     # the outer shell of an 8-cell grid holds contracted |y| > 1.5, that is |x| > 1 / (2 - 1.5) = 2
@@ -145,23 +160,25 @@ def test_a_contracted_grid_marches_every_ray_from_near_to_far_with_cone_steps():
 
 
 def test_a_contracted_grid_refreshes_cells_all_over_space():
-    grid = OccupancyGrid(UNIT_BOX, resolution=8, contracted=True, warmup_steps=10)
-    centres = grid.cell_centres().reshape(-1, 3)
+    grid = OccupancyGrid(CUBE, resolution=8, warmup_steps=10)
+    contraction = Contraction()
+    centres = grid.cell_centres().reshape(-1, 3)  # field space: contracted points
     # the outermost centres: contracted |y| = 2 - 0.25, so |x| = 1 / (2 - 1.75) = 4, four times the box's half-size
-    torch.testing.assert_close(centres.abs().amax(-1).max(), torch.tensor(4.0))
+    torch.testing.assert_close(contraction.inverse(centres).abs().amax(-1).max(), torch.tensor(4.0))
     cells, inside = grid.cell_of(centres)
     assert bool(inside.all())
     assert torch.equal(cells, torch.stack(torch.meshgrid(*[torch.arange(8)] * 3, indexing="ij"), -1).reshape(-1, 3))
-    grid.update(0, lambda points: (points.abs().amax(-1) > 3.0).float() * 100.0, step_size=0.02)  # only far away is dense
-    assert bool(grid.occupied(torch.tensor([[10.0, 0.0, 0.0]]))[0]) and not bool(grid.occupied(torch.zeros(1, 3))[0])
+    # a field of the contracted scene that is dense only far away (|x| > 3, contracted |y| > 5/3)
+    grid.update(0, lambda points: (contraction.inverse(points).abs().amax(-1) > 3.0).float() * 100.0, step_size=0.02)
+    assert bool(grid.occupied(contraction(torch.tensor([[10.0, 0.0, 0.0]])))[0]) and not bool(grid.occupied(torch.zeros(1, 3))[0])
 
 
 def test_an_empty_grid_gives_no_samples_and_the_background():
     grid = OccupancyGrid(UNIT_BOX, resolution=8)
     grid.binary.zero_()
     rays_o, rays_d = rays_towards_origin(10, seed=4)
-    samples = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.05, perturb=True)
-    assert len(samples.ray_indices) == 0
+    samples = march(grid, rays_o, rays_d, 2.0, 6.0, 0.05, perturb=True)
+    assert len(samples) == 0 and samples.n_rays == 10
 
 
 def test_early_stopping_drops_only_samples_behind_an_opaque_surface():
@@ -171,12 +188,12 @@ def test_early_stopping_drops_only_samples_behind_an_opaque_surface():
     def density(points):  # an opaque ball of radius 0.5
         return 50.0 * (points.norm(dim=-1) < 0.5).to(points.dtype)
 
-    everything = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False)
-    culled = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False, density_fn=density, early_stop_eps=1e-4)
+    everything = march(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False)
+    culled = march(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False, density_fn=density, early_stop_eps=1e-4)
     assert len(culled.ray_indices) < 0.8 * len(everything.ray_indices)
 
     def render(samples):
-        ray_indices, t_starts, t_ends = samples
+        ray_indices, t_starts, t_ends = samples.ray_indices, samples.t_starts, samples.t_ends
         points = rays_o[ray_indices] + rays_d[ray_indices] * (0.5 * (t_starts + t_ends))[:, None]
         rgb = torch.sigmoid(points)  # any colour field
         return composite_packed(rgb, density(points), t_starts, t_ends, ray_indices, 64, torch.ones(3))["rgb"]
@@ -249,20 +266,36 @@ def test_rendering_in_rounds_equals_compositing_every_marched_sample():
     grid = OccupancyGrid(UNIT_BOX, resolution=8)
     field = BallField()
     rays_o, rays_d = rays_towards_origin(64, seed=7, spread=0.2)  # most hit the ball
-    background = torch.tensor([1.0, 0.5, 0.0])
-    ray_indices, t_starts, t_ends = march_rays(grid, rays_o, rays_d, 2.0, 6.0, 0.02, perturb=False)
-    points = rays_o[ray_indices] + rays_d[ray_indices] * (0.5 * (t_starts + t_ends))[:, None]
-    out = field(points, rays_d[ray_indices])
-    everything = composite_packed(out["rgb"], out["density"], t_starts, t_ends, ray_indices, 64, background)
-    exact = render_rays_marched(field, grid, rays_o, rays_d, 2.0, 6.0, 0.02, False, background, early_stop_eps=0.0, samples_per_round=7)
-    assert exact["n_samples"] == len(ray_indices)
-    for key in ("rgb", "depth", "accumulation"):
+    space = SceneSpace(2.0, 6.0, background=(1.0, 0.5, 0.0))
+    rays = space.rays(rays_o, rays_d)
+    samples = OccupancyGridSampler(grid, step_size=0.02).sample(rays, space, field, perturb=False)
+    points = rays.points(samples.ray_indices, 0.5 * (samples.t_starts + samples.t_ends))
+    out = field(points, rays_d[samples.ray_indices])
+    everything = composite_packed(out["rgb"], out["density"], samples.t_starts, samples.t_ends, samples.ray_indices, 64, space.background)
+    exact = VolumeRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, samples, space)
+    assert exact["n_evaluated"] == len(samples)
+    for key in ("rgb", "depth", "accumulation", "weights"):
         torch.testing.assert_close(exact[key], everything[key])
-    stopped = render_rays_marched(field, grid, rays_o, rays_d, 2.0, 6.0, 0.02, False, background, early_stop_eps=1e-4, samples_per_round=7)
-    assert stopped["n_samples"] < 0.6 * len(ray_indices)  # the samples behind the ball are never evaluated
+    stopped = VolumeRenderer(early_stop_eps=1e-4, samples_per_round=7)(field, rays, samples, space)
+    assert stopped["n_evaluated"] < 0.6 * len(samples)  # the samples behind the ball are never evaluated
     torch.testing.assert_close(stopped["rgb"], everything["rgb"], atol=2e-4, rtol=0)
     stopped["rgb"].sum().backward()
     assert field.scale.grad is not None and field.scale.grad != 0
+
+
+def test_the_renderer_gives_each_ray_of_a_long_batch_its_own_float32_transmittance():
+    """Many rays of many samples: the round tables restart at every ray, so float32 matches a float64 reference."""
+    generator = torch.Generator().manual_seed(11)
+    n_rays, per_ray = 512, 300
+    edges = torch.sort(2 + 4 * torch.rand(n_rays, per_ray + 1, generator=generator, dtype=torch.float64), dim=-1).values
+    density = 2 * torch.rand(n_rays, per_ray, generator=generator, dtype=torch.float64)
+    rgb = torch.rand(n_rays, per_ray, 3, generator=generator, dtype=torch.float64)
+    reference = composite(rgb, density, 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1], torch.ones(3, dtype=torch.float64))
+    ray_indices = torch.arange(n_rays).repeat_interleave(per_ray)
+    packed = composite_packed(rgb.reshape(-1, 3).float(), density.reshape(-1).float(), edges[:, :-1].reshape(-1).float(),
+                              edges[:, 1:].reshape(-1).float(), ray_indices, n_rays, torch.ones(3))
+    assert (packed["rgb"].double() - reference["rgb"]).abs().max() < 1e-5
+    assert (packed["weights"].double() - reference["weights"].reshape(-1)).abs().max() < 1e-5
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
@@ -270,8 +303,14 @@ def test_marching_and_rendering_give_the_same_result_on_cuda():
     grid = random_grid(seed=8, fraction=0.5)
     field = BallField()
     rays_o, rays_d = rays_towards_origin(256, seed=9, spread=0.6)
-    on_cpu = render_rays_marched(field, grid, rays_o, rays_d, 2.0, 6.0, 0.02, False, torch.ones(3))
-    on_cuda = render_rays_marched(field.cuda(), grid.cuda(), rays_o.cuda(), rays_d.cuda(), 2.0, 6.0, 0.02, False, torch.ones(3, device="cuda"))
-    assert on_cuda["n_samples"].item() == on_cpu["n_samples"].item()
+    sampler, renderer = OccupancyGridSampler(grid, step_size=0.02), VolumeRenderer()
+
+    def render(device):
+        space = SceneSpace(2.0, 6.0).to(device)
+        rays = space.rays(rays_o.to(device), rays_d.to(device))
+        return renderer(field.to(device), rays, sampler.to(device).sample(rays, space, field, perturb=False), space)
+
+    on_cpu, on_cuda = render("cpu"), render("cuda")
+    assert on_cuda["n_evaluated"] == on_cpu["n_evaluated"]
     for key in ("rgb", "depth", "accumulation"):
         torch.testing.assert_close(on_cuda[key].cpu(), on_cpu[key], atol=1e-4, rtol=1e-4)

@@ -36,7 +36,7 @@ def visualise(cfg: DictConfig) -> Path | object:
     raise ValueError(f"viz.backend must be png or viser, got '{cfg.viz.backend}'")
 
 
-@hydra.main(version_base="1.3", config_path="conf", config_name="viz")
+@hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="viz")
 @report_errors("nerf-viz-cameras")
 def main(cfg: DictConfig) -> None:
     result = visualise(cfg)

@@ -1,4 +1,4 @@
-"""nerf-train: compose a config with Hydra, train with Lightning, write metrics.json into the run folder."""
+"""Training a model from a composed config with Lightning (what nerf-train runs); metrics.json in the run folder."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-import hydra
 import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from nerf_lightning.callbacks import RunConfigInCheckpoint, StepProgressBar
-from nerf_lightning.errors import ensure_writable, report_errors
+from nerf_lightning.checkpoints import read_checkpoint
+from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_json
 
 # Batches are drawn in the main process on purpose: workers would only copy the precomputed tensors.
@@ -25,8 +25,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """Train the model ``cfg.model`` on ``cfg.data``; returns the final metrics also written to metrics.json."""
     output_dir = ensure_writable(cfg.paths.output_dir, "paths.output_dir")
     ckpt_path = cfg.get("ckpt_path")
-    if ckpt_path and not Path(ckpt_path).expanduser().is_file():
-        raise FileNotFoundError(f"ckpt_path={ckpt_path} not found: expected a checkpoint of a run, such as <run>/checkpoints/last.ckpt")
+    if ckpt_path:
+        if not Path(ckpt_path).expanduser().is_file():
+            raise FileNotFoundError(f"ckpt_path={ckpt_path} not found: expected a checkpoint of a run, such as <run>/checkpoints/last.ckpt")
+        read_checkpoint(ckpt_path)  # refuses, in one line, a checkpoint of an older layout before Lightning reads it
     L.seed_everything(cfg.seed, workers=True, verbose=False)
 
     datamodule = instantiate(cfg.data)
@@ -48,19 +50,3 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if trainer.is_global_zero:
         write_json(output_dir / "metrics.json", metrics)
     return metrics
-
-
-@hydra.main(version_base="1.3", config_path="conf", config_name="train")
-@report_errors("nerf-train")
-def main(cfg: DictConfig) -> float | None:
-    metrics = train(cfg)
-    run = Path(cfg.paths.output_dir)
-    shown = ", ".join(f"{key} {metrics[key]:.2f}" for key in ("val/psnr", "val/ssim") if key in metrics)
-    print(f"{run}: {metrics['step']} steps in {metrics['wall_seconds']:.0f} s{', ' + shown if shown else ''}; "
-          f"next: nerf-render ckpt_path={run / 'checkpoints' / 'last.ckpt'}")
-    # a sweeper optimises the returned value
-    return metrics.get("val/psnr")
-
-
-if __name__ == "__main__":
-    main()

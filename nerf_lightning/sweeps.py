@@ -1,4 +1,4 @@
-"""nerf-sweep-report <multirun dir>: a markdown table of every job's overrides and final PSNR, and one plot.
+"""Reports of a multirun sweep: a markdown table of every job's overrides and final PSNR, and one plot (nerf-sweep-report).
 
 Reads each job folder's ``.hydra/overrides.yaml``, ``metrics.json`` and ``psnr_history.json``; writes
 ``report.md`` and ``psnr.png`` into the multirun folder and prints the table.
@@ -6,7 +6,6 @@ Reads each job folder's ``.hydra/overrides.yaml``, ``metrics.json`` and ``psnr_h
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -59,17 +58,3 @@ def report(sweep_dir: str | Path) -> str:
     write_atomic(sweep_dir / "report.md", markdown.encode())
     plot_psnr_curves(curves, sweep_dir / "psnr.png", title=f"validation PSNR: {sweep_dir.name}")
     return markdown
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="nerf-sweep-report", description=__doc__.splitlines()[0])
-    parser.add_argument("sweep_dir", help="a multirun folder, e.g. multirun/2026-11-21_10-00-00")
-    args = parser.parse_args(argv)
-    try:
-        print(report(args.sweep_dir))
-    except (FileNotFoundError, ValueError) as error:
-        parser.exit(2, f"nerf-sweep-report: {error}\n")
-
-
-if __name__ == "__main__":
-    main()

@@ -1,0 +1,25 @@
+"""nerf-eval: render every held-out view of a radiance field's scene (or of a second capture file, ``root=``) and
+write eval.json with PSNR, SSIM and depth error (:mod:`nerf_lightning.evaluation`)."""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from nerf_lightning.errors import ensure_writable, report_errors
+from nerf_lightning.evaluation import evaluate_checkpoint
+
+
+def evaluate(cfg: DictConfig) -> dict:
+    ensure_writable(cfg.output_dir, "output_dir")
+    return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views)
+
+
+@hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="eval")
+@report_errors("nerf-eval")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,41 @@
+"""nerf-render: render from a nerf-train checkpoint into <run>/renders/<time>/ (an image field at any scale; a
+radiance field along a camera path: GIFs, PNG frames and the path's transforms.json)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+from nerf_lightning.checkpoints import load_model
+from nerf_lightning.errors import ensure_writable, report_errors
+from nerf_lightning.io import write_png
+from nerf_lightning.rendering.views import render_camera_path
+
+log = logging.getLogger(__name__)
+
+
+def render(cfg: DictConfig) -> list[Path]:
+    model, info = load_model(cfg.ckpt_path)
+    output_dir = ensure_writable(cfg.output_dir, "output_dir")
+    scale = float(cfg.render.scale)
+    if info["kind"] == "image_field":
+        image = model.render_image(scale)
+        path = write_png(output_dir / f"rgb_scale{scale:g}.png", image)
+        log.info("wrote %s (%dx%d)", path, image.shape[1], image.shape[0])
+        return [path]
+    if info["kind"] != "radiance_field":
+        raise ValueError(f"{cfg.ckpt_path} holds a model of kind '{info['kind']}'; nerf-render knows image_field and radiance_field")
+    return render_camera_path(model, info["config"], output_dir, cfg.render.path, cfg.render.frames, scale, cfg.render.fps, cfg.render.depth_colormap)
+
+
+@hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="render")
+@report_errors("nerf-render")
+def main(cfg: DictConfig) -> None:
+    render(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,86 @@
+"""Evaluating a trained radiance field on held-out views: PSNR, SSIM and depth error per view and on average.
+
+``root=<transforms.json>`` evaluates on views captured separately instead: a second file of the same capture
+(instant-ngp / nerfstudio / Blender layout), loaded into the trained scene's world with the similarity the
+training scene was normalised by (``world_from_capture``), its images downscaled and composited as in training.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from nerf_lightning.checkpoints import load_model, load_run_data
+from nerf_lightning.data.formats.transforms import load_transforms
+from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.io import write_json, write_png
+from nerf_lightning.metrics import image_metrics
+from nerf_lightning.rendering.views import render_views
+
+log = logging.getLogger(__name__)
+
+
+def second_capture(model, config: dict, root: str | Path) -> Scene:
+    """Another ``transforms.json`` of the trained capture, in the trained scene's world: every frame with an image
+    in ``train`` (``holdout_every=0``) or in the splits the file names; downscale and background as in training."""
+    scene_cfg = config["data"]["scene"]
+    world_from_capture = model.space.world_from_capture
+    world_from_capture = torch.eye(4) if world_from_capture is None else world_from_capture.cpu()
+    return load_transforms(root, downscale=int(scene_cfg.get("downscale", 1)), holdout_every=0, world_from_capture=world_from_capture,
+                           background=tuple(scene_cfg.get("background") or (0.0, 0.0, 0.0)))
+
+
+def views_to_evaluate(model, config: dict, split: str = "test", root: str | Path | None = None) -> Views:
+    """The held-out views of the run's scene (``split``, else the other held-out split), or those of ``root`` (its
+    ``split`` if it names one, else all)."""
+    if not root:
+        return load_run_data(config).scene.held_out(split)
+    scene = second_capture(model, config, root)
+    return scene.splits[split] if split in scene.splits else scene.train
+
+
+def evaluate_views(model, views: Views, output_dir: Path | None = None) -> list[dict[str, Any]]:
+    """Render ``views`` (with images) and score each with :func:`~nerf_lightning.metrics.image_metrics`; with
+    ``output_dir``, the renders go to ``images/<view>_rgb.png`` and ``_depth.png`` there."""
+    rows = []
+    for index, frame in enumerate(render_views(model, views, desc=f"evaluating {len(views)} views")):
+        true_depth = views.depth[index] if views.depth is not None else None
+        metrics = image_metrics(frame["rgb"], as_float_rgb(views.images[index]), frame["depth"] if true_depth is not None else None, true_depth)
+        rows.append({"view": views.names[index], **{key: float(value) for key, value in metrics.items()}})
+        if output_dir is not None:
+            stem = Path(views.names[index]).stem
+            write_png(output_dir / "images" / f"{stem}_rgb.png", frame["rgb"])
+            write_png(output_dir / "images" / f"{stem}_depth.png", model.space.depth_picture(frame["depth"]) * frame["accumulation"])
+    return rows
+
+
+def mean_metrics(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """The mean of each metric over the views (depth error over the views where it is defined)."""
+    keys = [key for key in ("psnr", "ssim", "depth_error") if any(key in row for row in rows)]
+    mean = {}
+    for key in keys:
+        values = [row[key] for row in rows if key in row and row[key] == row[key]]  # NaN: a view with no surface
+        if values:
+            mean[key] = sum(values) / len(values)
+    return mean
+
+
+def evaluate_checkpoint(ckpt_path: str | Path, output_dir: str | Path, split: str = "test", root: str | Path | None = None,
+                        max_views: int | None = None) -> dict[str, Any]:
+    """Evaluate a radiance-field checkpoint (see :func:`views_to_evaluate`); writes ``eval.json`` and the renders into
+    ``output_dir`` and returns what eval.json holds."""
+    model, info = load_model(ckpt_path, kind="radiance_field", command="nerf-eval")
+    output_dir = Path(output_dir)
+    views = views_to_evaluate(model, info["config"], split, root)
+    if max_views:
+        views = views.subset(evenly_spaced(len(views), max_views))
+    rows = evaluate_views(model, views, output_dir)
+    result = {"checkpoint": str(Path(ckpt_path).resolve()), "step": info["global_step"], "split": split,
+              "scene": str(Path(root).resolve()) if root else "the run's own", "views": len(rows), "mean": mean_metrics(rows), "per_view": rows}
+    write_json(output_dir / "eval.json", result)
+    log.info("%d views: %s -> %s", len(rows), ", ".join(f"{k} {v:.4f}" for k, v in result["mean"].items()), output_dir / "eval.json")
+    return result

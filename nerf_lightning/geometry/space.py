@@ -1,0 +1,208 @@
+"""The scene's space: where rays are sampled and what a field sees, built once from a Scene.
+
+The data flows: a file format -> :class:`~nerf_lightning.data.scene.Scene` -> :class:`SceneSpace` -> rays -> a
+sampler -> a field -> the renderer. The scene space is the one object after the Scene that knows how the scene was
+parametrised, so that the samplers, the fields, rendering and export call it instead of reading flags:
+
+- *Sampling space*: rays are world rays (unit directions), or, for a forward-facing capture, rays in normalised
+  device coordinates (:class:`NDC`), where t in [0, 1] runs from the near plane to infinity. ``near`` and ``far``
+  are the range of t along the sampling rays.
+- *Field space*: the points a field and an occupancy grid see. The sampling space itself, or, for an unbounded
+  scene, the sampling space passed through a :class:`~nerf_lightning.geometry.contraction.Contraction` (all of
+  space inside [-2, 2]^3). A field's and a grid's ``aabb`` are boxes of the field space.
+- *Capture space*: the coordinates of the capture's files, from which the loader's similarity
+  ``world_from_capture`` took the scene (renders and meshes are mapped back to it).
+
+Checkpoints keep the space as one entry (:meth:`SceneSpace.state`), so every command rebuilds it from ``ckpt_path``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import kornia
+import torch
+from torch import nn
+
+from nerf_lightning.geometry.contraction import Contraction
+from nerf_lightning.geometry.rays import ndc_rays, ndc_to_world, ray_aabb_intersect
+
+
+class Rays(NamedTuple):
+    """N rays in the sampling space: ``origins`` and ``directions`` (N, 3) (unit in the world, not in NDC), and
+    ``viewdirs`` (N, 3), the unit world directions a field sees."""
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    viewdirs: torch.Tensor
+
+    def points(self, ray_indices: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """(M,) ray of each sample and (M,) distances -> (M, 3) points in the sampling space."""
+        return self.origins[ray_indices] + self.directions[ray_indices] * t[:, None]
+
+
+class NDC:
+    """Normalised device coordinates of a forward-facing capture whose cameras look down -z (NeRF's LLFF setting).
+
+    Args:
+        focal, width, height: the training cameras' focal length and image size in pixels.
+        near_plane: the plane z = -near_plane maps to NDC z = -1 (infinity maps to +1).
+    """
+
+    # a mesh of an NDC field stops short of z = 1, which is infinitely far
+    mesh_far_z = 0.95
+
+    def __init__(self, focal: float, width: int, height: int, near_plane: float = 1.0) -> None:
+        self.focal, self.width, self.height, self.near_plane = float(focal), int(width), int(height), float(near_plane)
+
+    def rays(self, origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, 3) world rays -> (N, 3) NDC origins and directions (see :func:`~nerf_lightning.geometry.rays.ndc_rays`)."""
+        return ndc_rays(origins, directions, self.focal, self.width, self.height, self.near_plane)
+
+    def to_world(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) NDC points (z < 1) -> (..., 3) world points."""
+        return ndc_to_world(points, self.focal, self.width, self.height, self.near_plane)
+
+    def state(self) -> dict[str, float]:
+        return {"focal": self.focal, "width": self.width, "height": self.height, "near_plane": self.near_plane}
+
+    def __repr__(self) -> str:
+        return f"NDC(focal={self.focal:g}, width={self.width}, height={self.height}, near_plane={self.near_plane:g})"
+
+
+class SceneSpace(nn.Module):
+    """Near/far, background, the capture's similarity and the optional NDC and contraction of a scene.
+
+    Args:
+        near, far: the range of t along sampling rays (world units along unit rays; 0 and 1 in NDC).
+        background: (3,) RGB blended in where rays are not opaque.
+        world_from_capture: (4, 4) similarity from the capture's coordinates to the scene's, or None.
+        ndc: sample in normalised device coordinates (forward-facing captures), or None.
+        contraction: fields see the scene contracted into [-2, 2]^3 (unbounded captures), or None.
+
+    An ``nn.Module`` so that it moves with its model between devices; its tensors are not in ``state_dict``:
+    checkpoints keep :meth:`state` instead.
+    """
+
+    def __init__(
+        self,
+        near: float = 2.0,
+        far: float = 6.0,
+        background: torch.Tensor | tuple[float, float, float] = (1.0, 1.0, 1.0),
+        world_from_capture: torch.Tensor | None = None,
+        ndc: NDC | None = None,
+        contraction: Contraction | None = None,
+    ) -> None:
+        super().__init__()
+        if ndc is not None and contraction is not None:
+            raise ValueError("a scene is sampled in NDC (data.ndc=true) or contracted (data.contract=true), not both")
+        if not 0.0 <= near < far:
+            raise ValueError(f"the scene space needs 0 <= near < far, got near={near}, far={far}")
+        self.near, self.far = float(near), float(far)
+        self.ndc, self.contraction = ndc, contraction
+        self.register_buffer("background", torch.as_tensor(background, dtype=torch.float32).clone(), persistent=False)
+        wfc = None if world_from_capture is None else torch.as_tensor(world_from_capture, dtype=torch.float32).clone()
+        self.register_buffer("world_from_capture", wfc, persistent=False)
+
+    @classmethod
+    def from_scene(cls, scene: Any, ndc: bool = False, contract: bool = False) -> SceneSpace:
+        """The space of a loaded :class:`~nerf_lightning.data.scene.Scene`: NDC from its training cameras (which must
+        look down -z) with ``ndc``; the contraction with ``contract``."""
+        if ndc and contract:
+            raise ValueError("data.ndc=true and data.contract=true do not go together: NDC is for forward-facing captures, "
+                             "the contraction for captures all around a subject")
+        ndc_space = None
+        near, far = scene.near, scene.far
+        if ndc:
+            train = scene.train
+            forward = torch.nn.functional.normalize(train.c2w[:, :3, 2].mean(0), dim=0)
+            if float(forward[2]) > -0.9:
+                raise ValueError(f"data.ndc=true needs forward-facing cameras looking down -z (an LLFF capture), but {scene.source}'s "
+                                 f"mean viewing direction is {[round(v, 3) for v in forward.tolist()]}")
+            ndc_space = NDC(float(train.K[0, 0, 0]), train.width, train.height, near_plane=1.0)
+            near, far = 0.0, 1.0  # NDC rays run from the near plane (t = 0) to infinity (t = 1)
+        return cls(near, far, scene.background, scene.world_from_capture, ndc_space, Contraction() if contract else None)
+
+    # -- rays and points ----------------------------------------------------------------------------------------
+
+    def rays(self, origins: torch.Tensor, directions: torch.Tensor) -> Rays:
+        """(N, 3) world rays with unit directions -> :class:`Rays` in the sampling space."""
+        if self.ndc is None:
+            return Rays(origins, directions, directions)
+        ndc_origins, ndc_directions = self.ndc.rays(origins, directions)
+        return Rays(ndc_origins, ndc_directions, directions)
+
+    def to_field(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) sampling-space points -> (..., 3) the points a field sees (contracted, or as they are)."""
+        return points if self.contraction is None else self.contraction(points)
+
+    def ray_range(self, rays: Rays, aabb: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N,) t_enter and t_exit of each ray: near..far, cut to a field-space box ``aabb`` (6,) where that box
+        bounds the rays (not for a contracted scene, whose box holds all of space); t_exit < t_enter: a miss."""
+        n_rays = rays.origins.shape[0]
+        t_enter, t_exit = rays.origins.new_full((n_rays,), self.near), rays.origins.new_full((n_rays,), self.far)
+        if aabb is None or self.contraction is not None:
+            return t_enter, t_exit
+        box_enter, box_exit = ray_aabb_intersect(rays.origins, rays.directions, aabb)
+        return torch.maximum(t_enter, box_enter), torch.minimum(t_exit, box_exit)
+
+    def check_box(self, aabb: torch.Tensor, key: str) -> None:
+        """A field's or grid's field-space box must hold a contracted scene's whole cube; ValueError naming ``key``."""
+        if self.contraction is None:
+            return
+        bounds = torch.tensor(self.contraction.bounds)
+        box = aabb.detach().cpu().float()
+        if bool((box[:3] > bounds[:3] + 1e-6).any() or (box[3:] < bounds[3:] - 1e-6).any()):
+            raise ValueError(f"{key} is {box.tolist()}, but a contracted scene (data.contract=true) fills the cube "
+                             f"{list(self.contraction.bounds)}: set {key}={list(self.contraction.bounds)}")
+
+    # -- pictures and meshes ------------------------------------------------------------------------------------
+
+    def depth_picture(self, depth: torch.Tensor) -> torch.Tensor:
+        """Depth as a picture in [0, 1], near bright: linear between near and far; for a contracted scene contracted
+        like the scene, 1 - d/2 up to d = 1 (the inner box's half-size), 1/(2d) beyond."""
+        if self.contraction is not None:
+            return torch.where(depth <= 1.0, 1.0 - depth / 2.0, 0.5 / depth.clamp(min=1.0))
+        return (1.0 - (depth - self.near) / (self.far - self.near)).clamp(0.0, 1.0)
+
+    def bounded_box(self, aabb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The part of a field-space box ``aabb`` (6,) that can be meshed, as low, high (3,) in the sampling space:
+        a contracted scene's inner box (where the contraction is the identity), an NDC box short of infinity."""
+        low, high = aabb[:3].detach().float().cpu().clone(), aabb[3:].detach().float().cpu().clone()
+        if self.contraction is not None:
+            inner = torch.tensor(self.contraction.identity_box)
+            low, high = torch.maximum(low, inner[:3]), torch.minimum(high, inner[3:])
+        if self.ndc is not None:
+            high[2] = min(float(high[2]), self.ndc.mesh_far_z)
+        return low, high
+
+    def to_capture(self, points: torch.Tensor) -> torch.Tensor:
+        """(V, 3) sampling-space points -> (V, 3) in the capture's coordinates: NDC undone, then the loader's
+        similarity undone (float64)."""
+        points = points.double()
+        if self.ndc is not None:
+            points = self.ndc.to_world(points)
+        if self.world_from_capture is not None:
+            capture_from_world = torch.linalg.inv(self.world_from_capture.double().cpu())
+            points = kornia.geometry.transform_points(capture_from_world[None], points.cpu()[None])[0]
+        return points
+
+    # -- checkpoints --------------------------------------------------------------------------------------------
+
+    def state(self) -> dict[str, Any]:
+        """Plain numbers and lists, what checkpoints keep."""
+        return {
+            "near": self.near, "far": self.far, "background": self.background.tolist(),
+            "world_from_capture": None if self.world_from_capture is None else self.world_from_capture.tolist(),
+            "ndc": None if self.ndc is None else self.ndc.state(),
+            "contraction": None if self.contraction is None else "max-norm",
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any]) -> SceneSpace:
+        ndc = NDC(**state["ndc"]) if state.get("ndc") else None
+        return cls(state["near"], state["far"], tuple(state["background"]), state.get("world_from_capture"), ndc,
+                   Contraction() if state.get("contraction") else None)
+
+    def extra_repr(self) -> str:
+        return f"near={self.near:g}, far={self.far:g}, ndc={self.ndc}, contraction={self.contraction}"

@@ -1,0 +1,8 @@
+"""Ray samplers: rays in, packed samples out (see :mod:`~nerf_lightning.rendering.samplers.base`)."""
+
+from nerf_lightning.rendering.samplers.base import RaySampler, RaySamples, sample_pdf, stratified_edges
+from nerf_lightning.rendering.samplers.hierarchical import HierarchicalSampler
+from nerf_lightning.rendering.samplers.occupancy_grid import OccupancyGridSampler
+from nerf_lightning.rendering.samplers.stratified import StratifiedSampler
+
+__all__ = ["HierarchicalSampler", "OccupancyGridSampler", "RaySampler", "RaySamples", "StratifiedSampler", "sample_pdf", "stratified_edges"]

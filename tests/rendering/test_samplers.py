@@ -1,0 +1,136 @@
+"""Every sampler: packed samples between near and far, in order, for any field; the samplers' own state and losses."""
+
+import pytest
+import torch
+
+from nerf_lightning.fields import GridField, NeRFField
+from nerf_lightning.fields.hash_grid import HashGridEncoding
+from nerf_lightning.geometry.contraction import Contraction
+from nerf_lightning.geometry.space import SceneSpace
+from nerf_lightning.rendering import HierarchicalSampler, OccupancyGrid, OccupancyGridSampler, StratifiedSampler, VolumeRenderer
+from nerf_lightning.rendering.samplers import stratified_edges
+
+BOX = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
+
+
+def small_nerf():
+    return NeRFField(position_frequencies=4, direction_frequencies=2, hidden_width=16, hidden_layers=2, skip_layer=None, view_width=8)
+
+
+def small_grid_field(aabb=BOX):
+    return GridField(aabb=aabb, encoding=HashGridEncoding(n_levels=4, log2_table_size=12, max_resolution=64), hidden_width=16, geometry_features=7)
+
+
+SAMPLERS = {
+    "stratified": lambda: StratifiedSampler(n_samples=24),
+    "hierarchical": lambda: HierarchicalSampler(small_nerf(), n_samples=16, n_fine_samples=16),
+    "occupancy_grid": lambda: OccupancyGridSampler(OccupancyGrid(BOX, resolution=8), step_size=0.05),
+}
+FIELDS = {"nerf": small_nerf, "hash_grid": small_grid_field}
+
+
+def camera_rays(space, count=64, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    origins = torch.nn.functional.normalize(torch.randn(count, 3, generator=generator), dim=-1) * 4.0
+    targets = (torch.rand(count, 3, generator=generator) * 2 - 1) * 0.8
+    return space.rays(origins, torch.nn.functional.normalize(targets - origins, dim=-1))
+
+
+def assert_packed_in_range(samples, near, far):
+    assert len(samples) > 0
+    assert (samples.ray_indices[1:] >= samples.ray_indices[:-1]).all()
+    assert (samples.t_starts >= near - 1e-5).all() and (samples.t_ends <= far + 1e-5).all()
+    assert (samples.t_ends >= samples.t_starts).all()
+    same_ray = samples.ray_indices[1:] == samples.ray_indices[:-1]
+    assert (samples.t_starts[1:][same_ray] >= samples.t_ends[:-1][same_ray] - 1e-5).all()
+
+
+@pytest.mark.parametrize("field_name", sorted(FIELDS))
+@pytest.mark.parametrize("sampler_name", sorted(SAMPLERS))
+@pytest.mark.parametrize("perturb", [False, True])
+def test_any_sampler_with_any_field_renders_samples_in_order_between_near_and_far(sampler_name, field_name, perturb):
+    torch.manual_seed(0)
+    sampler, field, space = SAMPLERS[sampler_name](), FIELDS[field_name](), SceneSpace(2.0, 6.0)
+    rays = camera_rays(space)
+    samples = sampler.sample(rays, space, field, perturb=perturb)
+    assert_packed_in_range(samples, 2.0, 6.0)
+    out = VolumeRenderer(early_stop_eps=0.0)(field, rays, samples, space)
+    assert out["rgb"].shape == (64, 3) and out["weights"].shape == (len(samples),) and out["n_evaluated"] == len(samples)
+    target = torch.rand(64, 3)
+    losses = sampler.losses(samples, out, target)
+    loss = torch.nn.functional.mse_loss(out["rgb"], target) + sum(losses.values())
+    loss.backward()
+    assert all(p.grad is not None for p in field.parameters() if p.requires_grad)
+    if sampler_name == "hierarchical":
+        assert set(losses) == {"coarse_rgb"} and any(p.grad is not None for p in sampler.coarse_field.parameters())
+    else:
+        assert losses == {}
+
+
+def test_stratified_edges_cover_each_ray_from_enter_to_exit():
+    torch.manual_seed(0)
+    t_enter, t_exit = torch.tensor([2.0, 0.5]), torch.tensor([6.0, 1.0])
+    even = stratified_edges(t_enter, t_exit, 4, perturb=False)
+    torch.testing.assert_close(even, torch.tensor([[2.0, 3.0, 4.0, 5.0, 6.0], [0.5, 0.625, 0.75, 0.875, 1.0]]))
+    jittered = stratified_edges(torch.full((1000,), 2.0), torch.full((1000,), 6.0), 4, perturb=True)
+    assert (jittered[:, 1:] >= jittered[:, :-1]).all() and (jittered >= 2.0).all() and (jittered <= 6.0).all()
+    # each inner edge moves between the midpoints of its neighbours: uniform on [k + 1.5, k + 2.5] about k + 2
+    torch.testing.assert_close(jittered[:, 1:-1].mean(0), torch.tensor([3.0, 4.0, 5.0]), atol=0.05, rtol=0)
+
+
+def test_hierarchical_samples_crowd_where_the_coarse_network_sees_a_surface():
+    class Slab(torch.nn.Module):  # opaque between t = 4 and 4.5 along the rays through the origin
+        def density(self, points):
+            return 100.0 * (points[..., 0].abs() < 0.25).float()
+
+        def forward(self, points, directions):
+            return {"rgb": torch.ones_like(points) * 0.5, "density": self.density(points)}
+
+    space = SceneSpace(2.0, 6.0)
+    rays = space.rays(torch.tensor([[-4.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]]))
+    samples = HierarchicalSampler(Slab(), n_samples=16, n_fine_samples=64).sample(rays, space, Slab(), perturb=False)
+    mids = 0.5 * (samples.t_starts + samples.t_ends)
+    near_surface = ((mids > 3.5) & (mids < 4.0)).sum()
+    assert near_surface >= 40  # of 80 intervals, most in the one coarse bin where the ray meets the slab
+
+
+def test_the_occupancy_grid_sampler_learns_from_the_field_and_skips_empty_space():
+    grid = OccupancyGrid(BOX, resolution=16, update_every=1, warmup_steps=10)
+    sampler = OccupancyGridSampler(grid, step_size=0.02)
+
+    class Ball(torch.nn.Module):
+        def density(self, points):
+            return 100.0 * (points.norm(dim=-1) < 0.5).float()
+
+        def forward(self, points, directions):
+            return {"rgb": torch.sigmoid(points), "density": self.density(points)}
+
+    space, field = SceneSpace(2.0, 6.0), Ball()
+    rays = camera_rays(space, count=256, seed=1)
+    before = len(sampler.sample(rays, space, field, perturb=False))
+    sampler.update(0, field)
+    after = sampler.sample(rays, space, field, perturb=False)
+    assert len(after) < 0.25 * before
+    points = rays.points(after.ray_indices, 0.5 * (after.t_starts + after.t_ends))
+    assert points.norm(dim=-1).max() < 0.5 + 3 ** 0.5 * 3.0 / 16  # within a cell of the ball
+
+
+def test_a_contracted_scene_marches_to_far_and_feeds_the_field_contracted_points():
+    seen = []
+
+    class Recorder(torch.nn.Module):
+        def density(self, points):
+            return torch.zeros(points.shape[:-1])
+
+        def forward(self, points, directions):
+            seen.append(points)
+            return {"rgb": torch.zeros_like(points), "density": self.density(points)}
+
+    space = SceneSpace(0.05, 100.0, contraction=Contraction())
+    sampler = OccupancyGridSampler(OccupancyGrid(list(Contraction.bounds), resolution=8), step_size=0.01, cone_angle=1 / 64)
+    rays = space.rays(torch.zeros(8, 3), torch.nn.functional.normalize(torch.randn(8, 3, generator=torch.Generator().manual_seed(0)), dim=-1))
+    samples = sampler.sample(rays, space, Recorder(), perturb=False)
+    assert float(samples.t_ends.max()) == pytest.approx(100.0)
+    VolumeRenderer()(Recorder(), rays, samples, space)
+    points = torch.cat(seen)
+    assert points.abs().max() < 2.0 and points.abs().max() > 1.9

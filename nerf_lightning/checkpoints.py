@@ -14,6 +14,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
 
 from nerf_lightning import __version__
+from nerf_lightning.devices import resolve_device
 from nerf_lightning.io import write_atomic
 
 log = logging.getLogger(__name__)
@@ -76,15 +77,17 @@ def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "c
 
 
 def load_model(
-    ckpt_path: str | Path, map_location: str | torch.device = "cpu", kind: str | None = None, command: str = "this command"
+    ckpt_path: str | Path, device: str | torch.device = "cpu", kind: str | None = None, command: str = "this command"
 ) -> tuple[L.LightningModule, dict[str, Any]]:
-    """Load a nerf-train checkpoint (:func:`read_checkpoint`): the model in eval mode and the run's resolved config.
+    """Load a nerf-train checkpoint (:func:`read_checkpoint`) on the CPU, then move it to ``device`` (``auto``, ``cpu``,
+    ``cuda``, ``mps``: :func:`~nerf_lightning.devices.resolve_device`): the model in eval mode and the run's resolved config.
 
     Raises ValueError, besides :func:`read_checkpoint`'s, when ``kind`` is given and the checkpoint holds another kind
-    of model than ``command`` works with.
+    of model than ``command`` works with, or ``device`` is not one this machine has.
     """
     path = Path(ckpt_path).expanduser()
-    checkpoint = read_checkpoint(path, map_location)
+    target = resolve_device(device)
+    checkpoint = read_checkpoint(path, "cpu")
     info = checkpoint["nerf_lightning"]
     if kind is not None and info.get("kind") != kind:
         raise ValueError(f"{path} holds a model of kind '{info.get('kind')}'; {command} works with {kind} checkpoints")
@@ -93,6 +96,7 @@ def load_model(
     model.on_load_checkpoint(checkpoint)
     model.load_state_dict(checkpoint["state_dict"])
     model.eval()
+    model.to(target)
     return model, {"kind": info["kind"], "config": config, "global_step": checkpoint.get("global_step")}
 
 

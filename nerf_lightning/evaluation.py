@@ -70,10 +70,10 @@ def mean_metrics(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 
 def evaluate_checkpoint(ckpt_path: str | Path, output_dir: str | Path, split: str = "test", root: str | Path | None = None,
-                        max_views: int | None = None) -> dict[str, Any]:
+                        max_views: int | None = None, device: str = "cpu") -> dict[str, Any]:
     """Evaluate a radiance-field checkpoint (see :func:`views_to_evaluate`); writes ``eval.json`` and the renders into
-    ``output_dir`` and returns what eval.json holds."""
-    model, info = load_model(ckpt_path, kind="radiance_field", command="nerf-eval")
+    ``output_dir`` and returns what eval.json holds. Rendered on ``device`` (auto, cpu, cuda, mps)."""
+    model, info = load_model(ckpt_path, device, kind="radiance_field", command="nerf-eval")
     output_dir = Path(output_dir)
     views = views_to_evaluate(model, info["config"], split, root)
     if max_views:

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nerf_lightning.callbacks import RunConfigInCheckpoint, StepProgressBar
 from nerf_lightning.checkpoints import read_checkpoint
+from nerf_lightning.devices import enable_tf32
 from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_json
 
@@ -30,6 +31,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             raise FileNotFoundError(f"ckpt_path={ckpt_path} not found: expected a checkpoint of a run, such as <run>/checkpoints/last.ckpt")
         read_checkpoint(ckpt_path)  # refuses, in one line, a checkpoint of an older layout before Lightning reads it
     L.seed_everything(cfg.seed, workers=True, verbose=False)
+    enable_tf32()
 
     datamodule = instantiate(cfg.data)
     model = instantiate(cfg.model)

@@ -38,26 +38,31 @@ def tiny_data(tmp_path_factory, procedural_scene) -> dict[str, Path]:
             "image": root / "image.png"}
 
 
+def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
+    """``experiment`` on the tiny data in its format (see :func:`tiny_data`), a few rays a step, one small validation."""
+    cfg = compose_config([f"experiment={experiment}", "paths.output_dir=/tmp/unused"])
+    scene_target = cfg.data.scene._target_ if "scene" in cfg.data else ""
+    overrides = [f"experiment={experiment}", *TINY]
+    if cfg.data._target_.endswith("PixelDataModule"):
+        return overrides + [f"data.path={tiny_data['image']}", "data.val_steps=[1,2]"]
+    overrides += [*(["data.scene.max_views=4"] if "max_views" in cfg.data.scene else []), "data.val_every=2", "data.val_views=1",
+                  "data.render_frames=2"]
+    for fmt in ("blender", "npz", "llff", "transforms"):
+        if scene_target.endswith(f"load_{fmt}"):
+            overrides.append(f"data.root={tiny_data[fmt]}")
+    if scene_target.endswith(("load_llff", "load_transforms")):
+        overrides += ["data.scene.downscale=2", "data.scene.max_views=8"]
+    if scene_target.endswith("load_blender"):
+        overrides.append("data.scene.downscale=1")
+    if scene_target.endswith("load_procedural"):
+        overrides.append("data.scene.size=16")
+    return overrides
+
+
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_every_experiment_instantiates_and_trains_two_steps(experiment, tiny_data, make_config, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    cfg = compose_config([f"experiment={experiment}", "paths.output_dir=/tmp/unused"])
-    scene_target = cfg.data.get("scene", {}).get("_target_", "") if "scene" in cfg.data else ""
-    overrides = [f"experiment={experiment}", *TINY]
-    if cfg.data._target_.endswith("PixelDataModule"):
-        overrides += [f"data.path={tiny_data['image']}", "data.batch_size=64", "data.val_steps=[1,2]"]
-    else:
-        overrides += [*(["data.scene.max_views=4"] if "max_views" in cfg.data.scene else []), "data.val_every=2", "data.val_views=1", "data.render_frames=2"]
-        for fmt in ("blender", "npz", "llff", "transforms"):
-            if scene_target.endswith(f"load_{fmt}"):
-                overrides.append(f"data.root={tiny_data[fmt]}")
-        if scene_target.endswith(("load_llff", "load_transforms")):
-            overrides += ["data.scene.downscale=2", "data.scene.max_views=8"]
-        if scene_target.endswith("load_blender"):
-            overrides.append("data.scene.downscale=1")
-        if scene_target.endswith("load_procedural"):
-            overrides.append("data.scene.size=16")
-    metrics = train(make_config(*overrides))
+    metrics = train(make_config(*tiny_overrides(experiment, tiny_data)))
     assert metrics["step"] == 2
     losses = [value for key, value in metrics.items() if key.startswith("train/loss")]
     assert losses and all(torch.isfinite(torch.tensor(losses)))

@@ -12,7 +12,7 @@ from nerf_lightning.evaluation import evaluate_checkpoint
 
 def evaluate(cfg: DictConfig) -> dict:
     ensure_writable(cfg.output_dir, "output_dir")
-    return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views)
+    return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views, cfg.device)
 
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="eval")

@@ -19,7 +19,7 @@ log = logging.getLogger(__name__)
 def export(cfg: DictConfig) -> Path:
     if cfg.format not in FORMATS:
         raise ValueError(f"export format must be one of {', '.join(FORMATS)}, got '{cfg.format}'")
-    model, _ = load_model(cfg.ckpt_path, kind="radiance_field", command="nerf-export")
+    model, _ = load_model(cfg.ckpt_path, cfg.device, kind="radiance_field", command="nerf-export")
     output_dir = ensure_writable(cfg.output_dir, "output_dir")
     mesh, info = mesh_radiance_field(model, cfg.bounds, cfg.resolution, cfg.threshold, cfg.keep, cfg.frame)
     path = write_mesh(output_dir / f"mesh.{cfg.format}", mesh)

@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 
 
 def render(cfg: DictConfig) -> list[Path]:
-    model, info = load_model(cfg.ckpt_path)
+    model, info = load_model(cfg.ckpt_path, cfg.device)
     output_dir = ensure_writable(cfg.output_dir, "output_dir")
     scale = float(cfg.render.scale)
     if info["kind"] == "image_field":

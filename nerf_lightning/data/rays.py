@@ -34,10 +34,13 @@ class RayDataModule(StepBatchesDataModule):
     renders in.
 
     Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units) and ``rgb``
-    (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. A batch's rays are computed from the
-    cameras of the pixels drawn (:func:`~nerf_lightning.geometry.rays.indexed_pixel_rays`) and their colours
-    converted from the uint8 images, so memory holds the training images (or, with
-    ``data.scene.image_cache``, maps them from disk) and nothing per pixel besides.
+    (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. The loader yields only the drawn pixels'
+    indices (``pixel_index`` (N,)); once Lightning has moved them to the model's device,
+    :meth:`on_after_batch_transfer` computes the rays there from the cameras of those pixels
+    (:func:`~nerf_lightning.geometry.rays.indexed_pixel_rays`) and gathers their colours from the uint8 images,
+    which are uploaded to a GPU once when they take less than a quarter of its free memory (else gathered on the
+    host). Memory holds the training images (or, with ``data.scene.image_cache``, maps them from disk) and
+    nothing per pixel besides.
 
     Args:
         scene: loads the :class:`Scene` (a Hydra ``_partial_`` of a loader such as ``load_blender``).
@@ -81,6 +84,7 @@ class RayDataModule(StepBatchesDataModule):
         self.ndc, self.contract = ndc, contract
         self.scene: Scene | None = None
         self.space: SceneSpace | None = None
+        self._on_device: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
 
     def setup(self, stage: str | None = None) -> None:
         if self.scene is not None:
@@ -90,10 +94,32 @@ class RayDataModule(StepBatchesDataModule):
         self.rgb = self.scene.train.images.reshape(-1, 3)  # (N*H*W, 3) uint8, a view of the images (in memory or mapped): no copy
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        train = self.scene.train
-        index = torch.randint(0, self.rgb.shape[0], (self.batch_size,), generator=generator)
-        rays_o, rays_d = indexed_pixel_rays(train.K, train.c2w, train.height, train.width, index)
-        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(self.rgb[index])}
+        """``pixel_index`` (N,): pixels drawn uniformly, with replacement, over every training view (see the class)."""
+        return {"pixel_index": torch.randint(0, self.rgb.shape[0], (self.batch_size,), generator=generator)}
+
+    def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
+        """A training batch's rays and colours, made on the device its ``pixel_index`` was moved to."""
+        if "pixel_index" not in batch:
+            return batch  # a validation view, rays and all
+        index = batch["pixel_index"]
+        K, c2w, rgb = self.cameras_and_images(index.device)
+        rays_o, rays_d = indexed_pixel_rays(K, c2w, self.scene.train.height, self.scene.train.width, index)
+        colours = self.rgb[index.cpu()].to(index.device, non_blocking=True) if rgb is None else rgb[index]
+        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours)}
+
+    def cameras_and_images(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The training cameras K (V, 3, 3), c2w (V, 4, 4) and the uint8 colours (V*H*W, 3) on ``device``, moved
+        once; the colours None where they stay on the host (a GPU with too little free memory for them)."""
+        if device not in self._on_device:
+            train = self.scene.train
+            rgb: torch.Tensor | None = self.rgb
+            if device.type == "cuda":
+                free, _ = torch.cuda.mem_get_info(device)
+                rgb = self.rgb.to(device) if self.rgb.numel() < free / 4 else None
+            elif device.type != "cpu":
+                rgb = self.rgb.to(device) if self.rgb.numel() < 2 * 2**30 else None
+            self._on_device[device] = (train.K.to(device), train.c2w.to(device), rgb)
+        return self._on_device[device]
 
     def validation_views(self) -> Views:
         held_out = self.scene.held_out(self.val_split)

@@ -12,22 +12,62 @@ from nerf_lightning.fields.mlp import MLP
 
 
 class _TruncExp(torch.autograd.Function):
-    """exp(x) whose gradient is exp(min(x, 15)): density stays positive and its gradient cannot blow up."""
+    """exp(x) whose gradient is exp(min(x, 15)): density stays positive and its gradient cannot blow up.
+
+    Computed in float32 whatever ``x`` is: under 16-mixed precision exp(15) = 3.3e6 would overflow float16 (65504),
+    so the density is float32 and the gradient is cast back to ``x``'s dtype only at the end."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor) -> torch.Tensor:  # noqa: D102
         ctx.save_for_backward(x)
-        return torch.exp(x)
+        return torch.exp(x.float())
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:  # noqa: D102
         (x,) = ctx.saved_tensors
-        return grad * torch.exp(x.clamp(max=15.0))
+        return (grad.float() * torch.exp(x.float().clamp(max=15.0))).to(x.dtype)
 
 
 def trunc_exp(x: torch.Tensor) -> torch.Tensor:
     """Elementwise exp with the gradient truncated at x = 15 (Instant-NGP's density activation)."""
     return _TruncExp.apply(x)
+
+
+def check_aabb(aabb: Sequence[float], owner: str) -> torch.Tensor:
+    """A box as 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max -> (6,) float32; ValueError otherwise."""
+    box = torch.as_tensor(list(aabb), dtype=torch.float32)
+    if box.shape != (6,) or not bool((box[3:] > box[:3]).all()):
+        raise ValueError(f"{owner}: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {box.tolist()}")
+    return box
+
+
+def grid_density(points: torch.Tensor, aabb: torch.Tensor, encoding: nn.Module, mlp: nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 3) field-space points -> the density (...,) >= 0 (``trunc_exp`` of the MLP's first output, 0 outside the
+    box ``aabb``) and the MLP's other outputs (..., K): the points normalised to the box's unit cube, encoded, the MLP."""
+    unit = (points - aabb[:3]) / (aabb[3:] - aabb[:3])
+    out = mlp(encoding(unit))
+    inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
+    return trunc_exp(out[..., 0]) * inside, out[..., 1:]
+
+
+class DensityField(nn.Module):
+    """Density only: a grid encoding and a small MLP, what a proposal sampler's proposal networks are (nerfacto's
+    ``HashMLPDensityField``: a hash grid of a few levels, one hidden layer of 16).
+
+    Args:
+        aabb: the box in the field space, 6 numbers; encoding: (..., 3) in [0, 1] -> (..., out_dim);
+        hidden_width: the MLP's hidden layer.
+    """
+
+    def __init__(self, aabb: Sequence[float], encoding: nn.Module, hidden_width: int = 16) -> None:
+        super().__init__()
+        self.register_buffer("aabb", check_aabb(aabb, type(self).__name__))
+        self.encoding = encoding
+        self.mlp = MLP(encoding.out_dim, hidden_width, 1, 1)
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) field-space points -> (...,) densities >= 0, 0 outside the box."""
+        return grid_density(points, self.aabb, self.encoding, self.mlp)[0]
 
 
 class GridField(nn.Module):
@@ -60,10 +100,7 @@ class GridField(nn.Module):
         direction_encoding: str = "sh",
     ) -> None:
         super().__init__()
-        aabb = torch.as_tensor(list(aabb), dtype=torch.float32)
-        if aabb.shape != (6,) or not bool((aabb[3:] > aabb[:3]).all()):
-            raise ValueError(f"{type(self).__name__}: aabb must be 6 numbers (xmin, ymin, zmin, xmax, ymax, zmax) with min < max, got {aabb.tolist()}")
-        self.register_buffer("aabb", aabb)
+        self.register_buffer("aabb", check_aabb(aabb, type(self).__name__))
         self.encoding = encoding
         self.density_mlp = MLP(encoding.out_dim, hidden_width, 1, 1 + geometry_features)
         if direction_encoding == "sh":
@@ -76,10 +113,7 @@ class GridField(nn.Module):
 
     def density_and_feature(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., 3) field-space points -> density (...,) >= 0 and the geometry feature (..., geometry_features)."""
-        unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
-        out = self.density_mlp(self.encoding(unit))
-        inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
-        return trunc_exp(out[..., 0]) * inside, out[..., 1:]
+        return grid_density(points, self.aabb, self.encoding, self.density_mlp)
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) field-space points -> (...,) densities: what meshes and occupancy grids query."""

@@ -16,7 +16,9 @@ class FieldModule(L.LightningModule):
     """A LightningModule that builds its optimiser and learning-rate scheduler from factories.
 
     A NaN or infinite training loss stops the run with :class:`~nerf_lightning.errors.NonFiniteLossError` before
-    it reaches the weights; the checkpoints keep the last finite weights. Checkpoints carry torch's random state
+    it reaches the weights (checked every step on a CPU, where it costs nothing; on a GPU every
+    ``trainer.log_every_n_steps`` steps, so that the step does not wait on the device, and the checkpoint writer
+    refuses non-finite weights in between); the checkpoints keep the last finite weights. Checkpoints carry torch's random state
     (CPU and CUDA), restored on resuming, so that stratified jitter continues as in an uninterrupted run.
 
     Args:
@@ -38,6 +40,8 @@ class FieldModule(L.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.make_scheduler(optimizer=optimizer), "interval": "step"}}
 
     def on_before_backward(self, loss: torch.Tensor) -> None:
+        if self.device.type != "cpu" and self.global_step % max(self.trainer.log_every_n_steps, 1) != 0:
+            return
         if not bool(torch.isfinite(loss.detach())):
             raise NonFiniteLossError(
                 f"step {self.global_step}: the training loss is {float(loss.detach())}; the run stops here and its last checkpoint keeps "

@@ -8,6 +8,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torchmetrics import MeanMetric
 
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import image_metrics, mse_to_psnr
@@ -50,6 +51,8 @@ class RadianceFieldModule(FieldModule):
         self.renderer = renderer or VolumeRenderer()
         self.chunk_size = chunk_size
         self.space = SceneSpace()
+        # the mean over the validated views where a surface is seen (NaN views left out), summed over DDP ranks
+        self.val_depth_error = MeanMetric(nan_strategy="ignore")
 
     def use_space(self, space: SceneSpace) -> None:
         """Render in ``space`` from now on; a box of a field or grid that cannot hold it is refused by name."""
@@ -85,7 +88,9 @@ class RadianceFieldModule(FieldModule):
         mse = F.mse_loss(out["rgb"], batch["rgb"])
         sampler_losses = self.sampler.losses(out["samples"], out, batch["rgb"])
         loss = mse + sum(sampler_losses.values())
-        self.log("train/samples_per_ray", out["n_evaluated"] / batch["rays_o"].shape[0], on_step=True)
+        if not loss.requires_grad:  # no ray of the batch met an occupied cell: nothing to learn, but the step goes on
+            loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
+        self.log("train/samples_per_ray", float(out["n_evaluated"]) / batch["rays_o"].shape[0], on_step=True)
         for name, value in sampler_losses.items():
             self.log(f"train/loss_{name}", value.detach(), on_step=True)
         self.log("train/loss", loss, on_step=True, on_epoch=False)
@@ -98,9 +103,12 @@ class RadianceFieldModule(FieldModule):
         rgb, depth = out["rgb"].reshape(height, width, 3), out["depth"].reshape(height, width)
         target = batch["rgb"].reshape(height, width, 3)
         true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
-        for name, value in image_metrics(rgb, target, depth, true_depth).items():
-            if torch.isfinite(value):
-                self.log(f"val/{name}", value, prog_bar=name == "psnr", batch_size=1, sync_dist=True)
+        metrics = image_metrics(rgb, target, depth, true_depth)
+        self.log("val/psnr", metrics["psnr"], prog_bar=True, batch_size=1, sync_dist=True)
+        self.log("val/ssim", metrics["ssim"], batch_size=1, sync_dist=True)
+        if "depth_error" in metrics:  # every rank validates views of the same scene: all log the key, or none does
+            self.val_depth_error.update(metrics["depth_error"])
+            self.log("val/depth_error", self.val_depth_error, batch_size=1)
         picture = self.space.depth_picture(depth) * out["accumulation"].reshape(height, width)
         return {"images": {"rgb": rgb, "depth": picture, "target": target}}
 

@@ -6,6 +6,7 @@ from nerf_lightning.rendering.renderer import VolumeRenderer
 from nerf_lightning.rendering.samplers import (
     HierarchicalSampler,
     OccupancyGridSampler,
+    ProposalSampler,
     RaySampler,
     RaySamples,
     StratifiedSampler,
@@ -14,6 +15,6 @@ from nerf_lightning.rendering.samplers import (
 from nerf_lightning.rendering.volume import composite, render_weights, transmittance
 
 __all__ = [
-    "HierarchicalSampler", "OccupancyGrid", "OccupancyGridSampler", "RaySampler", "RaySamples", "StratifiedSampler", "VolumeRenderer",
+    "HierarchicalSampler", "OccupancyGrid", "OccupancyGridSampler", "ProposalSampler", "RaySampler", "RaySamples", "StratifiedSampler", "VolumeRenderer",
     "composite", "composite_packed", "exclusive_sum_packed", "march_rays", "render_weights", "sample_pdf", "transmittance",
 ]

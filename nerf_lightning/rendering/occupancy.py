@@ -131,16 +131,18 @@ class OccupancyGrid(nn.Module):
 def step_edges(start: float, stop: float, step_size: float, cone_angle: float) -> torch.Tensor:
     """(K + 1,) float32 edges of the steps from ``start`` to past ``stop``: a step at distance t is
     ``max(step_size, cone_angle * t)`` long, so constant up to t = step_size / cone_angle and growing
-    geometrically, by (1 + cone_angle) a step, beyond it (Instant-NGP's cone tracing). Computed in float64 on the
-    host, returned in float32."""
+    geometrically, by (1 + cone_angle) a step, beyond it (Instant-NGP's cone tracing). The counts are worked out in
+    Python floats, the edges in float32 (no float64 tensor, which Apple GPUs lack): each edge is one product or one
+    power, so its error does not grow along the ray."""
     linear_end = max(start, step_size / cone_angle)
     n_linear = math.ceil(max(min(linear_end, stop) - start, 0.0) / step_size)
-    edges = start + step_size * torch.arange(n_linear + 1, dtype=torch.float64)
-    last = float(edges[-1])
+    edges = start + step_size * torch.arange(n_linear + 1, dtype=torch.float32)
+    last = start + step_size * n_linear
     if last < stop:
         n_geometric = math.ceil(math.log(stop / last) / math.log1p(cone_angle))
-        edges = torch.cat([edges, last * (1.0 + cone_angle) ** torch.arange(1, n_geometric + 1, dtype=torch.float64)])
-    return edges.float()
+        growth = torch.tensor(1.0 + cone_angle, dtype=torch.float32) ** torch.arange(1, n_geometric + 1, dtype=torch.float32)
+        edges = torch.cat([edges, last * growth])
+    return edges
 
 
 def march_rays(

@@ -80,7 +80,9 @@ def composite_packed(
         ``rgb`` (N, 3), ``depth`` (N,) (expected distance of the interval midpoints, given that the ray ends),
         ``accumulation`` (N,), ``weights`` (M,). Rays without samples get the background, accumulation 0.
     """
-    optical_depth = density * (t_ends - t_starts)
+    dtype = torch.promote_types(rgb.dtype, torch.float32)  # half colours or densities (mixed precision) composite in float32
+    rgb, density = rgb.to(dtype), density.to(dtype)
+    optical_depth = density * (t_ends - t_starts).to(dtype)
     transmittance = torch.exp(-exclusive_sum_packed(optical_depth, ray_indices, n_rays))
     if transmittance_before is not None:
         transmittance = transmittance_before[ray_indices] * transmittance

@@ -23,7 +23,7 @@ def test_make_scene_then_data_blender(tmp_path, procedural_scene):
 
     data = build("data=blender", f"data.root={tmp_path / 'scene'}", "data.batch_size=64", "data.val_views=2")
     assert data.scene.train.height == 32 and len(data.validation_views()) == 2
-    assert next(iter(data.train_dataloader()))["rays_o"].shape == (64, 3)
+    assert data.on_after_batch_transfer(next(iter(data.train_dataloader())), 0)["rays_o"].shape == (64, 3)
 
 
 def test_data_npz(tmp_path, procedural_scene):

@@ -65,6 +65,22 @@ def test_llff_recentring_and_scaling_is_one_similarity_transform(procedural_scen
     torch.testing.assert_close(mapped, loaded, atol=1e-5, rtol=0)
 
 
+def test_a_capture_with_only_full_size_images_gets_its_downscaled_folder_once(procedural_scene, tmp_path):
+    views = procedural_scene.train.subset(list(range(6)))
+    root = write_llff(views, tmp_path / "capture", downscale=1)  # images_1: rename it to the full-size images/
+    (root / "images_1").rename(root / "images")
+    scene = load_llff(root, downscale=2, holdout_every=0, bd_factor=None, recentre=False)
+    assert (root / "images_2").is_dir() and len(list((root / "images_2").iterdir())) == 6
+    assert scene.train.width == views.width // 2 and scene.train.K[0, 0, 0] == pytest.approx(float(views.K[0, 0, 0]) / 2)
+    # each pixel the mean of its 2x2 block of the full-size image (uint8 rounding aside)
+    full = views.images[0].float()
+    block_mean = full.reshape(views.height // 2, 2, views.width // 2, 2, 3).mean((1, 3))
+    assert (scene.train.images[0].float() - block_mean).abs().max() <= 1.0
+    written = (root / "images_2").stat().st_mtime_ns
+    load_llff(root, downscale=2, holdout_every=0, bd_factor=None, recentre=False)
+    assert (root / "images_2").stat().st_mtime_ns == written  # read, not written again
+
+
 def test_llff_bad_input_names_the_file(procedural_scene, tmp_path):
     views = procedural_scene.train.subset(list(range(4)))
     root = write_llff(views, tmp_path / "capture")

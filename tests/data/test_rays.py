@@ -16,7 +16,9 @@ def rays(procedural_scene):
 
 
 def test_training_batches(rays, procedural_scene):
-    batch = next(iter(rays.train_dataloader()))
+    drawn = next(iter(rays.train_dataloader()))
+    assert set(drawn) == {"pixel_index"} and drawn["pixel_index"].shape == (4096,)  # the loader draws pixels only
+    batch = rays.on_after_batch_transfer(drawn, 0)  # what Lightning calls on the model's device
     assert batch["rays_o"].shape == batch["rays_d"].shape == batch["rgb"].shape == (4096, 3)
     torch.testing.assert_close(batch["rays_d"].norm(dim=-1), torch.ones(4096))
     assert 0 <= batch["rgb"].min() and batch["rgb"].max() <= 1
@@ -35,7 +37,7 @@ def test_rays_are_drawn_uniformly_over_all_views(rays, procedural_scene):
     iterator = iter(rays.train_dataloader())
     train = procedural_scene.train
     for _ in range(10):
-        batch = next(iterator)
+        batch = rays.on_after_batch_transfer(next(iterator), 0)
         view = (batch["rays_o"][:, None, :] - train.c2w[None, :, :3, 3]).norm(dim=-1).argmin(dim=1)
         counts += torch.bincount(view, minlength=len(train))
     expected = counts.sum() / len(train)  # 512 per view

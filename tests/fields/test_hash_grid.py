@@ -153,3 +153,21 @@ def test_factorised_grid_encoding_interpolates_its_factors():
     encoding(torch.rand(10, 3)).sum().backward()
     assert encoding.planes.grad.abs().sum() > 0 and encoding.lines.grad.abs().sum() > 0
     assert GridField([-1, -1, -1, 1, 1, 1], encoding)(torch.zeros(4, 3), torch.eye(3)[[0, 1, 2, 0]])["rgb"].shape == (4, 3)
+
+
+def test_the_gather_interpolation_for_apple_gpus_equals_grid_sample_and_its_gradient():
+    from nerf_lightning.fields.tensorf import bilinear_gather
+
+    generator = torch.Generator().manual_seed(0)
+    for shape in ((3, 5, 7, 6), (3, 5, 9, 1)):  # the planes, and the lines (one column)
+        grids = torch.randn(*shape, generator=generator, dtype=torch.float64, requires_grad=True)
+        xy = torch.rand(3, 200, 2, generator=generator, dtype=torch.float64) * 2 - 1
+        if shape[-1] == 1:
+            xy[..., 0] = 0.0
+        expected = torch.nn.functional.grid_sample(grids, xy[:, :, None], mode="bilinear", align_corners=True)
+        got = bilinear_gather(grids, xy)
+        torch.testing.assert_close(got, expected)
+        weights = torch.randn(expected.shape, generator=generator, dtype=torch.float64)
+        (expected_grad,) = torch.autograd.grad((expected * weights).sum(), grids)
+        (got_grad,) = torch.autograd.grad((got * weights).sum(), grids)
+        torch.testing.assert_close(got_grad, expected_grad)

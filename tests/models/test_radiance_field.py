@@ -105,3 +105,18 @@ def test_hierarchical_sampling_trains_both_networks(make_config, scene_cache, mo
     model = torch.load(cfg.paths.output_dir + "/checkpoints/last.ckpt", weights_only=False)["state_dict"]
     assert any(key.startswith("sampler.coarse_field.") for key in model) and any(key.startswith("field.") for key in model)
 
+
+
+def test_a_batch_whose_rays_all_miss_the_occupied_cells_is_a_step_not_a_crash(make_config, scene_cache, monkeypatch):
+    from hydra.utils import instantiate
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    cfg = make_config("experiment=fast", "model.sampler.grid.resolution=8")
+    model = instantiate(cfg.model)
+    model.sampler.grid.binary.zero_()  # an empty grid: no samples at all
+    model.sampler.grid.update_every = 10**9
+    batch = {"rays_o": torch.tensor([[0.0, 0.0, 4.0]]).expand(16, 3), "rays_d": torch.tensor([[0.0, 0.0, -1.0]]).expand(16, 3),
+             "rgb": torch.rand(16, 3)}
+    loss = model.training_step(batch, 0)
+    assert loss.requires_grad and torch.isfinite(loss)
+    loss.backward()  # gradients of zero, not "element 0 of tensors does not require grad"

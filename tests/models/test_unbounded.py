@@ -101,3 +101,4 @@ def test_export_and_render_map_back_to_the_capture(trained, capture, tmp_path):
     # the spiral circles the capture's subject at the training cameras' distance (4 procedural units, 12 here)
     distances = (centres - CAPTURE_FROM_PROCEDURAL[:3, 3].double()).norm(dim=-1)
     torch.testing.assert_close(distances, torch.full((4,), 12.0, dtype=torch.float64), atol=0.3, rtol=0)
+

@@ -3,12 +3,20 @@
 import pytest
 import torch
 
-from nerf_lightning.fields import GridField, NeRFField
+from nerf_lightning.fields import DensityField, GridField, NeRFField
 from nerf_lightning.fields.hash_grid import HashGridEncoding
 from nerf_lightning.geometry.contraction import Contraction
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.rendering import HierarchicalSampler, OccupancyGrid, OccupancyGridSampler, StratifiedSampler, VolumeRenderer
+from nerf_lightning.rendering import (
+    HierarchicalSampler,
+    OccupancyGrid,
+    OccupancyGridSampler,
+    ProposalSampler,
+    StratifiedSampler,
+    VolumeRenderer,
+)
 from nerf_lightning.rendering.samplers import stratified_edges
+from nerf_lightning.rendering.samplers.proposal import distortion_loss, interlevel_loss
 
 BOX = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
 
@@ -25,7 +33,12 @@ SAMPLERS = {
     "stratified": lambda: StratifiedSampler(n_samples=24),
     "hierarchical": lambda: HierarchicalSampler(small_nerf(), n_samples=16, n_fine_samples=16),
     "occupancy_grid": lambda: OccupancyGridSampler(OccupancyGrid(BOX, resolution=8), step_size=0.05),
+    "proposal": lambda: ProposalSampler([small_density_field(), small_density_field()], proposal_samples=(32, 16), field_samples=12),
 }
+
+
+def small_density_field():
+    return DensityField(BOX, HashGridEncoding(n_levels=3, log2_table_size=10, max_resolution=32))
 FIELDS = {"nerf": small_nerf, "hash_grid": small_grid_field}
 
 
@@ -63,6 +76,9 @@ def test_any_sampler_with_any_field_renders_samples_in_order_between_near_and_fa
     assert all(p.grad is not None for p in field.parameters() if p.requires_grad)
     if sampler_name == "hierarchical":
         assert set(losses) == {"coarse_rgb"} and any(p.grad is not None for p in sampler.coarse_field.parameters())
+    elif sampler_name == "proposal":
+        assert set(losses) == ({"interlevel", "distortion"} if perturb else {"distortion"})
+        assert all(p.grad is not None for p in sampler.proposal_fields.parameters()) == perturb  # they learn in training only
     else:
         assert losses == {}
 
@@ -134,3 +150,50 @@ def test_a_contracted_scene_marches_to_far_and_feeds_the_field_contracted_points
     VolumeRenderer()(Recorder(), rays, samples, space)
     points = torch.cat(seen)
     assert points.abs().max() < 2.0 and points.abs().max() > 1.9
+
+
+def test_the_proposal_sampler_crowds_the_field_samples_where_the_proposals_see_density():
+    class Slab(torch.nn.Module):  # opaque for |x| < 0.25: along the rays below, t in (3.75, 4.25)
+        def density(self, points):
+            return 100.0 * (points[..., 0].abs() < 0.25).float()
+
+    space = SceneSpace(2.0, 6.0)
+    rays = space.rays(torch.tensor([[-4.0, 0.0, 0.0]]).expand(64, 3), torch.tensor([[1.0, 0.0, 0.0]]).expand(64, 3))
+    sampler = ProposalSampler([Slab(), Slab()], proposal_samples=(64, 32), field_samples=32, anneal_steps=10)
+    sampler.update(100, None)  # annealing done: the weights as they are
+    samples = sampler.sample(rays, space, None, perturb=True)
+    assert_packed_in_range(samples, 2.0, 6.0)
+    mids = 0.5 * (samples.t_starts + samples.t_ends)
+    assert ((mids > 3.6) & (mids < 4.0)).float().mean() > 0.8  # where the ray meets the slab, not spread over 2..6
+    sampler.update(0, None)  # at step 0 the proposal weights are annealed flat: intervals spread along the ray
+    flat = sampler.sample(rays, space, None, perturb=True)
+    flat_mids = 0.5 * (flat.t_starts + flat.t_ends)
+    assert ((flat_mids > 3.6) & (flat_mids < 4.0)).float().mean() < 0.3
+
+
+def test_the_interlevel_loss_is_zero_when_the_proposal_bounds_the_weights_and_positive_otherwise():
+    edges = torch.linspace(0.0, 1.0, 9)[None]  # 8 fine intervals
+    weights = torch.tensor([[0.0, 0.1, 0.4, 0.3, 0.1, 0.0, 0.0, 0.0]])
+    coarse_edges = torch.linspace(0.0, 1.0, 5)[None]  # 4 coarse intervals, each over two fine ones
+    bounding = torch.tensor([[0.1, 0.7, 0.1, 0.0]])  # each coarse weight >= the fine weights inside it
+    assert float(interlevel_loss(edges, weights, coarse_edges, bounding)) == pytest.approx(0.0, abs=1e-10)
+    short = torch.tensor([[0.1, 0.2, 0.1, 0.0]])  # the 0.4 in [0.25, 0.375] is not bounded by its coarse bin's 0.2
+    # (the 0.3 in [0.375, 0.5] touches the next coarse bin at 0.5, so its bound is 0.2 + 0.1: closed intervals, as nerfstudio's)
+    expected = (0.4 - 0.2) ** 2 / 0.4
+    assert float(interlevel_loss(edges, weights, coarse_edges, short)) == pytest.approx(expected, rel=1e-5)
+    # gradients reach the proposal's weights only
+    short = short.clone().requires_grad_(True)
+    detached = weights.clone().requires_grad_(True)
+    interlevel_loss(edges, detached, coarse_edges, short).backward()
+    assert short.grad is not None and detached.grad is None
+
+
+def test_the_linear_time_distortion_loss_equals_its_quadratic_definition():
+    generator = torch.Generator().manual_seed(0)
+    edges = torch.sort(torch.rand(50, 33, generator=generator, dtype=torch.float64), dim=-1).values
+    weights = torch.rand(50, 32, generator=generator, dtype=torch.float64)
+    weights = weights / weights.sum(-1, keepdim=True) * torch.rand(50, 1, generator=generator, dtype=torch.float64)
+    mids, widths = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    quadratic = (weights[:, :, None] * weights[:, None, :] * (mids[:, :, None] - mids[:, None, :]).abs()).sum((1, 2))
+    quadratic = (quadratic + (weights**2 * widths).sum(-1) / 3).mean()
+    torch.testing.assert_close(distortion_loss(edges, weights), quadratic)

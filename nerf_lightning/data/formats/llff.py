@@ -15,14 +15,18 @@ average camera, looking at the focus depth, with radii the 90th percentile of th
 
 from __future__ import annotations
 
+import logging
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from nerf_lightning.data.image_stack import stack_images
+from nerf_lightning.data.images import downscale as area_downscale
 from nerf_lightning.data.images import load_image
+from nerf_lightning.io import write_png
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 
@@ -98,6 +102,28 @@ def write_poses_bounds(path: str | Path, c2w_opencv: torch.Tensor, height: int, 
     return path
 
 
+log = logging.getLogger(__name__)
+
+
+def downscaled_folder(root: Path, factor: int) -> Path:
+    """``root/images_<factor>``, written once from the full-size ``root/images`` by area averaging when a capture has
+    only those (what COLMAP's ``imgs2poses`` leaves; LLFF's own ``minify`` does the same). Written into a temporary
+    folder and renamed, so an interrupted run leaves no half folder."""
+    folder, full = root / f"images_{factor}", root / "images"
+    if folder.is_dir() or factor == 1 or not full.is_dir():
+        return folder
+    files = sorted(p for p in full.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        return folder
+    log.info("%s: writing images_%d/ from the %d full-size images (once; later runs read it)", root, factor, len(files))
+    partial = root / f".images_{factor}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    for path in files:
+        write_png(partial / f"{path.stem}.png", area_downscale(load_image(path), factor))
+    partial.rename(folder)
+    return folder
+
+
 def load_llff(
     root: str | Path,
     downscale: int = 8,
@@ -115,7 +141,8 @@ def load_llff(
     Args:
         root: the folder with ``poses_bounds.npy`` and ``images[_k]/``.
         downscale: k of the ``images_<k>`` folder to read (1 reads ``images/``); sizes and the focal length are
-            scaled from the npy's full-size [H, W, focal] by the images' actual size.
+            scaled from the npy's full-size [H, W, focal] by the images' actual size. A capture with only the
+            full-size ``images/`` gets its ``images_<k>/`` written once (:func:`downscaled_folder`).
         holdout_every: every k-th view (0, k, 2k, ...) is held out as val and test (NeRF's ``llffhold`` = 8).
         bd_factor: scale the scene so that the nearest bound is 1 / bd_factor (None: no scaling).
         recentre: move the world to the average camera.
@@ -129,7 +156,7 @@ def load_llff(
     if not root.is_dir():
         raise FileNotFoundError(f"LLFF scene folder not found: {root}")
     c2w, hwf, bounds = read_poses_bounds(root / "poses_bounds.npy")
-    folder = root / ("images" if downscale == 1 else f"images_{downscale}")
+    folder = root / "images" if downscale == 1 else downscaled_folder(root, downscale)
     if not folder.is_dir():
         available = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("images"))
         raise FileNotFoundError(f"{folder} not found: data.scene.downscale={downscale} reads it; {root} has {available or 'no image folders'}")

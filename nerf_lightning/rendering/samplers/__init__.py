@@ -3,6 +3,7 @@
 from nerf_lightning.rendering.samplers.base import RaySampler, RaySamples, sample_pdf, stratified_edges
 from nerf_lightning.rendering.samplers.hierarchical import HierarchicalSampler
 from nerf_lightning.rendering.samplers.occupancy_grid import OccupancyGridSampler
+from nerf_lightning.rendering.samplers.proposal import ProposalSampler
 from nerf_lightning.rendering.samplers.stratified import StratifiedSampler
 
-__all__ = ["HierarchicalSampler", "OccupancyGridSampler", "RaySampler", "RaySamples", "StratifiedSampler", "sample_pdf", "stratified_edges"]
+__all__ = ["HierarchicalSampler", "OccupancyGridSampler", "ProposalSampler", "RaySampler", "RaySamples", "StratifiedSampler", "sample_pdf", "stratified_edges"]

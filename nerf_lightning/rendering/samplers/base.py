@@ -61,7 +61,7 @@ def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_samples: int, pertu
         edges: (N, B + 1) sorted bin edges along each ray.
         weights: (N, B) non-negative weights of the bins (need not be normalised; detached here).
         n_samples: points to draw per ray.
-        perturb: draw uniformly at random; otherwise at evenly spaced quantiles.
+        perturb: draw at stratified random quantiles (one in each 1/n_samples slice); otherwise at evenly spaced ones.
 
     Returns:
         (N, n_samples) sorted distances, distributed within each bin uniformly and across bins in proportion to
@@ -71,8 +71,8 @@ def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_samples: int, pertu
     pdf = weights / weights.sum(dim=-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[..., :1]), torch.cumsum(pdf, dim=-1)], dim=-1)  # (N, B + 1)
     cdf[..., -1] = 1.0
-    if perturb:
-        u = torch.rand(*cdf.shape[:-1], n_samples, dtype=cdf.dtype, device=cdf.device)
+    if perturb:  # stratified: one uniform draw in each of n_samples equal slices of [0, 1], so no region is skipped
+        u = (torch.arange(n_samples, dtype=cdf.dtype, device=cdf.device) + torch.rand(*cdf.shape[:-1], n_samples, dtype=cdf.dtype, device=cdf.device)) / n_samples
     else:
         u = torch.linspace(0.0, 1.0, n_samples, dtype=cdf.dtype, device=cdf.device).expand(*cdf.shape[:-1], n_samples)
     u = u.contiguous()

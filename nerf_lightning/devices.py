@@ -1,0 +1,48 @@
+"""Which device a command runs on: the ``device=auto|cpu|cuda|cuda:N|mps`` key of nerf-render, nerf-eval, nerf-export
+and nerf-viz-cameras (training picks its device through Lightning's ``trainer.accelerator``)."""
+
+from __future__ import annotations
+
+import torch
+
+DEVICE_CHOICES = "auto, cpu, cuda, cuda:<index> or mps"
+
+
+def available_devices() -> list[str]:
+    """The devices this machine has, as ``device=`` values."""
+    devices = ["cpu"]
+    if torch.cuda.is_available():
+        devices += ["cuda"] + [f"cuda:{index}" for index in range(torch.cuda.device_count())]
+    if torch.backends.mps.is_available():
+        devices.append("mps")
+    return devices
+
+
+def resolve_device(name: str | torch.device | None) -> torch.device:
+    """``device=`` as a torch device: ``auto`` (or None) is CUDA where there is one, else the Apple GPU (MPS), else the
+    CPU. ValueError naming the key for a device that is not one of :data:`DEVICE_CHOICES` or that this machine lacks."""
+    if isinstance(name, torch.device):
+        return name
+    text = "auto" if name is None else str(name).strip().lower()
+    if text == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        return torch.device("mps") if torch.backends.mps.is_available() else torch.device("cpu")
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"device must be {DEVICE_CHOICES}, got '{name}'") from None
+    if device.type not in ("cpu", "cuda", "mps"):
+        raise ValueError(f"device must be {DEVICE_CHOICES}, got '{name}'")
+    if device.type == "cuda" and (not torch.cuda.is_available() or (device.index or 0) >= torch.cuda.device_count()):
+        raise ValueError(f"device={name}: this machine has no such CUDA device (it has {', '.join(available_devices())}); use device=auto or device=cpu")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device={name}: this machine has no Apple GPU (it has {', '.join(available_devices())}); use device=auto or device=cpu")
+    return device
+
+
+def enable_tf32() -> None:
+    """On CUDA, let float32 matrix products use TensorFloat-32 (Ampere and later: several times the speed, a 10-bit
+    mantissa inside the product, float32 accumulation), as Lightning suggests; nothing elsewhere."""
+    if torch.cuda.is_available():
+        torch.set_float32_matmul_precision("high")

@@ -4,14 +4,15 @@ extra: its wheel carries COLMAP, nothing else to install), and the result as a n
 Three stages, each with a progress bar: SIFT features of every image (read at most ``max_size`` pixels on their long
 side; the keypoints come back in the full image's pixels, so the cameras are those of the images as written),
 matching with geometric verification of the chosen image pairs (every pair, or each image with its neighbours in
-time for a video), and mapping, global (GLOMAP, the default) or incremental. Features and matches are fed in chunks
-so that the bars move: images by the handful, pairs by the block.
+time for a video), and mapping. Features and matches are fed in chunks so that the bars move: images by the handful,
+pairs by the block.
 
-Why global by default: on fox's 50 photos (two arcs of a walk round a mounted fox in front of a repeating rose
-wallpaper, the photos between them missing) the incremental mapper joins the second arc to the first through wallpaper
-matches one repeat off, every image registered with a small reprojection error and the arcs misplaced; the global
-mapper, which weighs every pair's relative pose at once, places them as the published poses do
-(docs/benchmarks.md).
+Mapping runs both COLMAP mappers by default, the global one (GLOMAP) and the incremental one, and keeps the model that
+explains the most geometrically verified matches. A model can reproject its own points to a pixel and still be
+wrong: on fox's 50 photos (two arcs of a walk round a mounted fox before a repeating rose wallpaper, the photos between
+them missing) either mapper, depending on the matches' RANSAC seed, joins the second arc to the first through
+wallpaper matches one repeat off, every image registered and the arcs misplaced; such a model contradicts the
+fox's own matches between the arcs, which the right one explains (docs/benchmarks.md).
 
 Written against pycolmap 4.2 (``FeatureExtractionOptions``, ``Image.cam_from_world()``, ``match_image_pairs``,
 ``global_mapping``).
@@ -37,7 +38,7 @@ from nerf_lightning.geometry.cameras import opengl_to_opencv
 
 COLMAP_EXTRA = 'pip install -c constraints-cpu.txt -e ".[colmap]"'
 MATCHERS = ("auto", "exhaustive", "sequential")
-MAPPERS = ("global", "incremental")
+MAPPERS = ("auto", "global", "incremental")
 # exhaustive matching costs n^2 / 2 pairs: beyond this many images ``auto`` matches neighbours in name order
 EXHAUSTIVE_UP_TO = 100
 # COLMAP's parameters of each camera model this project's transforms.json loader reads, in COLMAP's order
@@ -125,17 +126,20 @@ def extract_features(database: Path, images: Path, names: Sequence[str], camera_
             bar.update(len(chunk))
 
 
-def match_features(database: Path, names: Sequence[str], pairs: list[list[tuple[int, int]]], scratch: Path, progress: bool) -> None:
+def match_features(database: Path, names: Sequence[str], pairs: list[list[tuple[int, int]]], scratch: Path, seed: int, progress: bool) -> None:
     """Match the features of each pair of images (indices into ``names``) and keep the matches that fit a two-view
-    geometry (fundamental, essential or homography matrix, RANSAC), chunk by chunk through pair lists in ``scratch``."""
+    geometry (fundamental, essential or homography matrix, RANSAC seeded with ``seed``), chunk by chunk through pair
+    lists in ``scratch``."""
     pycolmap = import_pycolmap()
     scratch.mkdir(parents=True, exist_ok=True)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = scratch / "pairs.txt"
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = seed  # unseeded, the verified matches and so the model differ from run to run
     with tqdm(total=sum(map(len, pairs)), desc="matching", unit="pair", disable=not progress) as bar:
         for chunk in pairs:
             pairing.match_list_path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in chunk))
-            pycolmap.match_image_pairs(database, pairing_options=pairing)
+            pycolmap.match_image_pairs(database, pairing_options=pairing, verification_options=verification)
             bar.update(len(chunk))
 
 
@@ -163,8 +167,8 @@ def map_images(database: Path, images: Path, scratch: Path, count: int, mapper: 
             options.min_model_size = 3
             options.random_seed = seed
 
-            def registered(images: int) -> None:
-                bar.update(min(images, bar.total - bar.n))
+            def registered(newly: int) -> None:
+                bar.update(min(newly, bar.total - bar.n))
 
             models = pycolmap.incremental_mapping(database, images, scratch, options=options, initial_image_pair_callback=lambda: registered(2),
                                                   next_image_callback=lambda: registered(1))
@@ -174,21 +178,75 @@ def map_images(database: Path, images: Path, scratch: Path, count: int, mapper: 
     return models
 
 
-def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher: str, mapper: str = "global", camera_model: str = "OPENCV",
+def sampson_distance(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
+    """How far matched points are from satisfying the epipolar constraint of two posed cameras (first-order geometric
+    distance, in normalised image coordinates: multiply by a focal length for pixels).
+
+    Args:
+        cam1_from_world, cam2_from_world: (3, 4) world-to-camera matrices [R | t].
+        points1, points2: (M, 2) matched points in normalised camera coordinates (lens undone).
+    Returns:
+        (M,) Sampson distances.
+    """
+    rotation = cam2_from_world[:, :3] @ cam1_from_world[:, :3].T
+    x, y, z = cam2_from_world[:, 3] - rotation @ cam1_from_world[:, 3]
+    essential = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]) @ rotation
+    homogeneous1 = np.concatenate([points1, np.ones((len(points1), 1))], axis=1)
+    homogeneous2 = np.concatenate([points2, np.ones((len(points2), 1))], axis=1)
+    line2, line1 = homogeneous1 @ essential.T, homogeneous2 @ essential
+    numerator = (homogeneous2 * line2).sum(1) ** 2
+    denominator = line2[:, 0] ** 2 + line2[:, 1] ** 2 + line1[:, 0] ** 2 + line1[:, 1] ** 2
+    return np.sqrt(numerator / np.maximum(denominator, 1e-30))
+
+
+def verified_matches_explained(database: Path, reconstruction: Any, threshold_px: float = 4.0) -> tuple[int, int]:
+    """How many of the geometrically verified matches between registered images the model's poses explain, of how
+    many: a pair whose inliers lie within ``threshold_px`` (median Sampson distance) of the epipolar geometry of its
+    two posed cameras counts with all its inliers.
+
+    A model can reproject its own points well and still be wrong: joined through a repeating pattern one repeat off,
+    it explains the pattern's matches and contradicts the other pairs'. This counts those pairs, without ground truth.
+    """
+    pycolmap = import_pycolmap()
+    registered = set(reconstruction.reg_image_ids())
+    explained = total = 0
+    with contextlib.closing(pycolmap.Database.open(database)) as opened:
+        keypoints = {image_id: opened.read_keypoints(image_id)[:, :2] for image_id in registered}
+        pair_ids, geometries = opened.read_two_view_geometries()
+        for pair_id, geometry in zip(pair_ids, geometries):
+            first, second = pycolmap.pair_id_to_image_pair(pair_id)
+            inliers = geometry.inlier_matches
+            if first not in registered or second not in registered or len(inliers) == 0:
+                continue
+            image1, image2 = reconstruction.image(first), reconstruction.image(second)
+            camera1, camera2 = reconstruction.camera(image1.camera_id), reconstruction.camera(image2.camera_id)
+            points1 = camera1.cam_from_img(keypoints[first][inliers[:, 0]])
+            points2 = camera2.cam_from_img(keypoints[second][inliers[:, 1]])
+            distance = sampson_distance(camera_from_world(image1)[:3], camera_from_world(image2)[:3], points1, points2)
+            focal = 0.5 * (camera1.mean_focal_length() + camera2.mean_focal_length())
+            total += len(inliers)
+            explained += len(inliers) if float(np.median(distance)) * focal < threshold_px else 0
+    return explained, total
+
+
+def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher: str, mapper: str = "auto", camera_model: str = "OPENCV",
                 single_camera: bool = True, max_size: int = 1600, max_features: int = 8192, seed: int = 0,
-                progress: bool = True, verbose: bool = False) -> tuple[Any | None, dict[str, float]]:
-    """Structure from motion of ``images/<name>`` for each name: ``colmap_dir/database.db`` and the largest model,
+                progress: bool = True, verbose: bool = False) -> tuple[Any | None, dict[str, float], dict[str, Any]]:
+    """Structure from motion of ``images/<name>`` for each name: ``colmap_dir/database.db`` and the chosen model,
     also written to ``colmap_dir/sparse/0`` (COLMAP's binary format).
 
     Args:
         matcher: ``exhaustive`` or ``sequential`` (see :func:`choose_matcher`).
-        mapper: ``global`` or ``incremental`` (see :func:`map_images`).
+        mapper: ``global``, ``incremental`` (see :func:`map_images`) or ``auto``: both, and the model that explains
+            the most verified matches kept (:func:`verified_matches_explained`).
         camera_model: one of :data:`CAMERA_MODELS`.
         single_camera: one camera (intrinsics) shared by every image, as for photos from one phone at one zoom.
         max_size: the long side, in pixels, images are read at for feature extraction.
         max_features: SIFT features kept an image.
     Returns:
-        the largest model (a ``pycolmap.Reconstruction``; None when none was built) and the seconds each stage took.
+        the model (a ``pycolmap.Reconstruction``, the largest its mapper built; None when none was built), the seconds
+        each stage took, and of each mapper run its images registered and fraction of verified matches explained
+        (``mappers``) and which was kept (``mapper``).
     """
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)} (models whose lenses the transforms.json "
@@ -207,20 +265,30 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
 
         started = time.perf_counter()
         pairs = exhaustive_pairs(len(names)) if matcher == "exhaustive" else sequential_pairs(len(names))
-        match_features(database, names, pairs, colmap_dir / "pairs", progress)
+        match_features(database, names, pairs, colmap_dir / "pairs", seed, progress)
         seconds["matching"] = time.perf_counter() - started
 
         started = time.perf_counter()
-        models = map_images(database, images, colmap_dir / "models", len(names), mapper, seed, progress)
+        candidates, tried = {}, {}
+        for name in ("global", "incremental") if mapper == "auto" else (mapper,):
+            models = map_images(database, images, colmap_dir / f"models_{name}", len(names), name, seed, progress)
+            if models:
+                explained, total = verified_matches_explained(database, models[0])
+                candidates[name] = (explained, models[0])
+                tried[name] = {"registered": models[0].num_reg_images(), "verified_matches_explained": round(explained / max(total, 1), 4)}
+            else:
+                tried[name] = {"registered": 0, "verified_matches_explained": 0.0}
         seconds["mapping"] = time.perf_counter() - started
     shutil.rmtree(colmap_dir / "pairs", ignore_errors=True)
-    shutil.rmtree(colmap_dir / "models", ignore_errors=True)
-    if not models:
-        return None, seconds
-    largest = models[0]
+    for name in tried:
+        shutil.rmtree(colmap_dir / f"models_{name}", ignore_errors=True)
+    if not candidates:
+        return None, seconds, {"mapper": None, "mappers": tried}
+    kept = max(candidates, key=lambda name: candidates[name][0])
+    model = candidates[kept][1]
     (colmap_dir / "sparse" / "0").mkdir(parents=True, exist_ok=True)
-    largest.write(colmap_dir / "sparse" / "0")
-    return largest, seconds
+    model.write(colmap_dir / "sparse" / "0")
+    return model, seconds, {"mapper": kept, "mappers": tried}
 
 
 def camera_intrinsics(camera: Any) -> dict[str, Any]:

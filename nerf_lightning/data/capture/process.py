@@ -2,7 +2,7 @@
 
     input (folder of photos | video)
       -> images/ (upright, full size) and images_2/, images_4/, images_8/          images.py, video.py
-      -> COLMAP features, matches, global mapping, in-process through pycolmap       colmap.py
+      -> COLMAP features, matches, mapping, in-process through pycolmap              colmap.py
       -> transforms.json (nerfstudio's layout), sparse_pc.ply, colmap/, report.json
 
 Everything is written into a hidden folder beside ``output`` and moved into ``output`` at the end, transforms.json
@@ -42,6 +42,7 @@ from nerf_lightning.data.capture.colmap import (
 )
 from nerf_lightning.data.capture.images import find_images, save_image, write_capture_image, write_downscaled
 from nerf_lightning.data.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
+from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_atomic, write_json
 
 log = logging.getLogger(__name__)
@@ -140,7 +141,7 @@ def process_capture(
     output: str | Path,
     frames: int = 100,
     matcher: str = "auto",
-    mapper: str = "global",
+    mapper: str = "auto",
     camera_model: str = "OPENCV",
     single_camera: bool = True,
     max_size: int = 1600,
@@ -158,7 +159,8 @@ def process_capture(
         output: the folder to write; what an earlier run wrote there is replaced, anything else is kept.
         frames: for a video, how many frames to take, spread over the clip, the sharpest of each stretch.
         matcher: ``auto``, ``exhaustive`` (every pair) or ``sequential`` (neighbours in name or time order).
-        mapper: ``global`` (COLMAP's GLOMAP) or ``incremental`` (COLMAP's classic mapper).
+        mapper: ``auto`` (both of COLMAP's mappers, the model that explains the most verified matches kept),
+            ``global`` (GLOMAP) or ``incremental`` (COLMAP's classic mapper).
         camera_model: COLMAP's lens model: OPENCV (k1, k2, p1, p2), SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE.
         single_camera: all images share one camera's intrinsics (one phone, one zoom); false gives each its own.
         max_size: the long side in pixels the images are read at for feature extraction (images/ keeps full size).
@@ -195,7 +197,7 @@ def process_capture(
     pycolmap = import_pycolmap()  # before any work: a missing extra is the first thing to hear about
     from_video = source.is_file()
     images_given = None if from_video else find_images(source)
-    output.parent.mkdir(parents=True, exist_ok=True)
+    ensure_writable(output.parent, "output")
     staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent))
     try:
         seconds: dict[str, float] = {}
@@ -216,9 +218,9 @@ def process_capture(
                              f"{sizes[other][0]}x{sizes[other][1]}); use single_camera=false (a camera each) or resize them alike")
 
         chosen = choose_matcher(matcher, len(names), from_video)
-        model, stage_seconds = reconstruct(staging / "images", names, staging / "colmap", matcher=chosen, mapper=mapper, camera_model=camera_model,
-                                           single_camera=single_camera, max_size=int(max_size), max_features=int(max_features),
-                                           seed=seed, progress=progress, verbose=verbose)
+        model, stage_seconds, mapping = reconstruct(
+            staging / "images", names, staging / "colmap", matcher=chosen, mapper=mapper, camera_model=camera_model, single_camera=single_camera,
+            max_size=int(max_size), max_features=int(max_features), seed=seed, progress=progress, verbose=verbose)
         seconds.update(stage_seconds)
         posed = registered_names(model) if model is not None else set()
         unregistered = [name for name in names if name not in posed]
@@ -231,7 +233,9 @@ def process_capture(
         seconds["total"] = time.perf_counter() - started
         report.update({
             "images_given": len(names), "registered": len(posed), "unregistered": unregistered, "matcher": chosen,
-            "mapper": mapper, "camera_model": camera_model, "single_camera": bool(single_camera), "max_size": int(max_size),
+            "mapper": mapping["mapper"], "mappers": mapping["mappers"],
+            "verified_matches_explained": mapping["mappers"][mapping["mapper"]]["verified_matches_explained"],
+            "camera_model": camera_model, "single_camera": bool(single_camera), "max_size": int(max_size),
             **model_statistics(model),
             "camera": {key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "w", "h") if key in transforms},
             "seconds": {stage: round(value, 2) for stage, value in seconds.items()},
@@ -253,7 +257,7 @@ def format_report(report: dict[str, Any]) -> str:
         f"registered {registered} of {given} images ({100.0 * registered / given:.0f}%; {report['matcher']} matching, {report['mapper']} mapping, "
         f"{report['camera_model']} camera{'' if report['single_camera'] else 's'})",
         f"mean reprojection error {report['mean_reprojection_error_px']:.2f} px, mean track length {report['mean_track_length']:.1f} "
-        f"images, {report['points']} points",
+        f"images, {report['points']} points; the poses explain {100.0 * report['verified_matches_explained']:.0f}% of the verified matches",
         "did not register: " + (listed(report["unregistered"]) if report["unregistered"] else "none"),
         f"{report['seconds']['total']:.0f} s: " + ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items() if stage != "total"),
         f"wrote {output}/transforms.json, images/ (and smaller copies), sparse_pc.ply, colmap/, report.json",

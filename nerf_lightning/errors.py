@@ -27,11 +27,15 @@ class NonFiniteLossError(RuntimeError):
     """Training produced a NaN or infinite loss; the run stops and its last checkpoint is kept as it was."""
 
 
+class MissingExtraError(ImportError):
+    """An optional dependency the command needs is not installed; the message names the extra and how to install it."""
+
+
 def input_error(error: BaseException) -> BaseException | None:
     """The user-input error behind ``error`` (unwrapping Hydra's InstantiationException), or None for a bug."""
     while isinstance(error, InstantiationException) and error.__cause__ is not None:
         error = error.__cause__
-    return error if isinstance(error, (*INPUT_ERRORS, NonFiniteLossError)) else None
+    return error if isinstance(error, (*INPUT_ERRORS, NonFiniteLossError, MissingExtraError)) else None
 
 
 def fail(command: str, message: str) -> NoReturn:

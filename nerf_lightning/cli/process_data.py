@@ -1,0 +1,27 @@
+"""nerf-process-data: a folder of photos or a video posed with COLMAP (pycolmap, in-process) into a capture that
+nerf-train reads (:func:`nerf_lightning.data.capture.process_capture`), and its report printed."""
+
+from __future__ import annotations
+
+import hydra
+from omegaconf import DictConfig
+
+from nerf_lightning.data.capture import format_report, process_capture
+from nerf_lightning.errors import report_errors
+
+
+def process(cfg: DictConfig) -> dict:
+    return process_capture(cfg.input, cfg.output, frames=cfg.frames, matcher=cfg.matcher, mapper=cfg.mapper, camera_model=cfg.camera_model,
+                           single_camera=cfg.single_camera, max_size=cfg.max_size, max_features=cfg.max_features,
+                           downscales=list(cfg.downscales), min_registered=cfg.min_registered, seed=cfg.seed,
+                           progress=cfg.progress, verbose=cfg.verbose)
+
+
+@hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="process_data")
+@report_errors("nerf-process-data")
+def main(cfg: DictConfig) -> None:
+    print(format_report(process(cfg)))
+
+
+if __name__ == "__main__":
+    main()

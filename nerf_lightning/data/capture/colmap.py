@@ -1,0 +1,362 @@
+"""Camera poses of a capture by COLMAP's structure from motion, run in-process through ``pycolmap`` (the ``colmap``
+extra: its wheel carries COLMAP, nothing else to install), and the result as a nerfstudio ``transforms.json``.
+
+Three stages, each with a progress bar: SIFT features of every image (read at most ``max_size`` pixels on their long
+side; the keypoints come back in the full image's pixels, so the cameras are those of the images as written),
+matching with geometric verification of the chosen image pairs (every pair, or each image with its neighbours in
+time for a video), and mapping. Features and matches are fed in chunks so that the bars move: images by the handful,
+pairs by the block.
+
+Mapping runs both COLMAP mappers by default, the global one (GLOMAP) and the incremental one, and keeps the model that
+explains the most geometrically verified matches. A model can reproject its own points to a pixel and still be
+wrong: on fox's 50 photos (two arcs of a walk round a mounted fox before a repeating rose wallpaper, the photos between
+them missing) either mapper, depending on the matches' RANSAC seed, joins the second arc to the first through
+wallpaper matches one repeat off, every image registered and the arcs misplaced; such a model contradicts the
+fox's own matches between the arcs, which the right one explains (docs/benchmarks.md).
+
+Written against pycolmap 4.2 (``FeatureExtractionOptions``, ``Image.cam_from_world()``, ``match_image_pairs``,
+``global_mapping``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from nerf_lightning.data.capture.images import natural_key
+from nerf_lightning.errors import MissingExtraError
+from nerf_lightning.geometry.cameras import opengl_to_opencv
+
+COLMAP_EXTRA = 'pip install -c constraints-cpu.txt -e ".[colmap]"'
+MATCHERS = ("auto", "exhaustive", "sequential")
+MAPPERS = ("auto", "global", "incremental")
+# exhaustive matching costs n^2 / 2 pairs: beyond this many images ``auto`` matches neighbours in name order
+EXHAUSTIVE_UP_TO = 100
+# COLMAP's parameters of each camera model this project's transforms.json loader reads, in COLMAP's order
+CAMERA_PARAMETERS = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fl_x", "fl_y", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
+}
+CAMERA_MODELS = tuple(CAMERA_PARAMETERS)
+
+
+def import_pycolmap() -> Any:
+    """The ``pycolmap`` module; MissingExtraError with the install line when it is not installed."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise MissingExtraError(f"camera poses need pycolmap, the colmap extra: {COLMAP_EXTRA}") from None
+    return pycolmap
+
+
+@contextlib.contextmanager
+def colmap_log(verbose: bool) -> Iterator[None]:
+    """COLMAP's own log (glog, on stderr) while inside: everything when ``verbose``, else errors only."""
+    logging = import_pycolmap().logging
+    before = logging.minloglevel
+    logging.minloglevel = 0 if verbose else 2
+    try:
+        yield
+    finally:
+        logging.minloglevel = before
+
+
+def chunks(items: Sequence, size: int) -> Iterator[Sequence]:
+    for start in range(0, len(items), size):
+        yield items[start : start + size]
+
+
+def exhaustive_pairs(count: int, block: int = 10) -> list[list[tuple[int, int]]]:
+    """Every pair (i, j), i < j, of ``count`` images, in chunks of one block of images against another, so that each
+    chunk reads the features of at most 2 ``block`` images."""
+    starts = range(0, count, block)
+    return [[(i, j) for i in range(a, min(a + block, count)) for j in range(max(b, i + 1), min(b + block, count))]
+            for a in starts for b in starts if b >= a]
+
+
+def sequential_pairs(count: int, overlap: int = 10, chunk: int = 100) -> list[list[tuple[int, int]]]:
+    """Each image with the next ``overlap`` ones and with those 2, 4, 8, ... 2^overlap ahead (COLMAP's sequential
+    matcher with quadratic overlap, without loop detection, which needs a vocabulary tree), in chunks of ``chunk``."""
+    pairs = sorted({(i, i + step) for i in range(count) for step in [*range(1, overlap + 1), *(2**k for k in range(overlap))]
+                    if i + step < count})
+    return [pairs[start : start + chunk] for start in range(0, len(pairs), chunk)]
+
+
+def choose_matcher(matcher: str, count: int, from_video: bool) -> str:
+    """``exhaustive`` or ``sequential``: ``auto`` matches every pair of photos under ``EXHAUSTIVE_UP_TO`` images and
+    neighbours in time for a video's frames and for larger sets."""
+    if matcher not in MATCHERS:
+        raise ValueError(f"matcher must be one of {', '.join(MATCHERS)}, got '{matcher}'")
+    if matcher != "auto":
+        return matcher
+    return "sequential" if from_video or count >= EXHAUSTIVE_UP_TO else "exhaustive"
+
+
+def extract_features(database: Path, images: Path, names: Sequence[str], camera_model: str, single_camera: bool,
+                     max_size: int, max_features: int, progress: bool) -> None:
+    """SIFT keypoints and descriptors of ``images/<name>`` for each name into the COLMAP ``database``; the cameras
+    (one shared, or one an image) of ``camera_model`` with a focal length from EXIF or 1.2 x the long side."""
+    pycolmap = import_pycolmap()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = max_size
+    extraction.sift.max_num_features = max_features
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    with tqdm(total=len(names), desc="features", unit="image", disable=not progress) as bar:
+        for chunk in chunks(names, max(4, 2 * (os.cpu_count() or 1))):
+            pycolmap.extract_features(database, images, image_names=list(chunk), camera_mode=mode, reader_options=reader,
+                                      extraction_options=extraction)
+            if single_camera and reader.existing_camera_id < 0:
+                # later chunks join the camera the first one made rather than each making its own
+                with contextlib.closing(pycolmap.Database.open(database)) as opened:
+                    reader.existing_camera_id = opened.read_all_cameras()[0].camera_id
+            bar.update(len(chunk))
+
+
+def match_features(database: Path, names: Sequence[str], pairs: list[list[tuple[int, int]]], scratch: Path, seed: int, progress: bool) -> None:
+    """Match the features of each pair of images (indices into ``names``) and keep the matches that fit a two-view
+    geometry (fundamental, essential or homography matrix, RANSAC seeded with ``seed``), chunk by chunk through pair
+    lists in ``scratch``."""
+    pycolmap = import_pycolmap()
+    scratch.mkdir(parents=True, exist_ok=True)
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = scratch / "pairs.txt"
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = seed  # unseeded, the verified matches and so the model differ from run to run
+    with tqdm(total=sum(map(len, pairs)), desc="matching", unit="pair", disable=not progress) as bar:
+        for chunk in pairs:
+            pairing.match_list_path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in chunk))
+            pycolmap.match_image_pairs(database, pairing_options=pairing, verification_options=verification)
+            bar.update(len(chunk))
+
+
+def map_images(database: Path, images: Path, scratch: Path, count: int, mapper: str, seed: int, progress: bool) -> list[Any]:
+    """Camera poses and 3D points from the matched ``database``: every model the mapper builds (models of fewer than
+    3 images dropped), largest first.
+
+    ``global`` is COLMAP's global mapper (GLOMAP: all rotations averaged at once, then positions and points placed
+    jointly); ``incremental`` is COLMAP's classic mapper, which registers one image at a time from an initial pair.
+    """
+    pycolmap = import_pycolmap()
+    pycolmap.set_random_seed(seed)
+    scratch.mkdir(parents=True, exist_ok=True)
+    with tqdm(total=count, desc=f"mapping ({mapper})", unit="image", disable=not progress) as bar:
+        if mapper == "global":
+            if not hasattr(pycolmap, "global_mapping"):
+                raise ValueError(f"mapper=global needs pycolmap 4.2 or later (installed: {pycolmap.__version__}); "
+                                 f"upgrade it ({COLMAP_EXTRA}) or use mapper=incremental")
+            options = pycolmap.GlobalPipelineOptions()
+            options.min_model_size = 3
+            options.random_seed = seed
+            models = pycolmap.global_mapping(database, images, scratch, options=options)
+        else:
+            options = pycolmap.IncrementalPipelineOptions()
+            options.min_model_size = 3
+            options.random_seed = seed
+
+            def registered(newly: int) -> None:
+                bar.update(min(newly, bar.total - bar.n))
+
+            models = pycolmap.incremental_mapping(database, images, scratch, options=options, initial_image_pair_callback=lambda: registered(2),
+                                                  next_image_callback=lambda: registered(1))
+        models = sorted(models.values(), key=lambda model: model.num_reg_images(), reverse=True)
+        bar.n = models[0].num_reg_images() if models else 0  # the largest model's, where several were built
+        bar.refresh()
+    return models
+
+
+def sampson_distance(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
+    """How far matched points are from satisfying the epipolar constraint of two posed cameras (first-order geometric
+    distance, in normalised image coordinates: multiply by a focal length for pixels).
+
+    Args:
+        cam1_from_world, cam2_from_world: (3, 4) world-to-camera matrices [R | t].
+        points1, points2: (M, 2) matched points in normalised camera coordinates (lens undone).
+    Returns:
+        (M,) Sampson distances.
+    """
+    rotation = cam2_from_world[:, :3] @ cam1_from_world[:, :3].T
+    x, y, z = cam2_from_world[:, 3] - rotation @ cam1_from_world[:, 3]
+    essential = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]) @ rotation
+    homogeneous1 = np.concatenate([points1, np.ones((len(points1), 1))], axis=1)
+    homogeneous2 = np.concatenate([points2, np.ones((len(points2), 1))], axis=1)
+    line2, line1 = homogeneous1 @ essential.T, homogeneous2 @ essential
+    numerator = (homogeneous2 * line2).sum(1) ** 2
+    denominator = line2[:, 0] ** 2 + line2[:, 1] ** 2 + line1[:, 0] ** 2 + line1[:, 1] ** 2
+    return np.sqrt(numerator / np.maximum(denominator, 1e-30))
+
+
+def verified_matches_explained(database: Path, reconstruction: Any, threshold_px: float = 4.0) -> tuple[int, int]:
+    """How many of the geometrically verified matches between registered images the model's poses explain, of how
+    many: a pair whose inliers lie within ``threshold_px`` (median Sampson distance) of the epipolar geometry of its
+    two posed cameras counts with all its inliers.
+
+    A model can reproject its own points well and still be wrong: joined through a repeating pattern one repeat off,
+    it explains the pattern's matches and contradicts the other pairs'. This counts those pairs, without ground truth.
+    """
+    pycolmap = import_pycolmap()
+    registered = set(reconstruction.reg_image_ids())
+    explained = total = 0
+    with contextlib.closing(pycolmap.Database.open(database)) as opened:
+        keypoints = {image_id: opened.read_keypoints(image_id)[:, :2] for image_id in registered}
+        pair_ids, geometries = opened.read_two_view_geometries()
+        for pair_id, geometry in zip(pair_ids, geometries):
+            first, second = pycolmap.pair_id_to_image_pair(pair_id)
+            inliers = geometry.inlier_matches
+            if first not in registered or second not in registered or len(inliers) == 0:
+                continue
+            image1, image2 = reconstruction.image(first), reconstruction.image(second)
+            camera1, camera2 = reconstruction.camera(image1.camera_id), reconstruction.camera(image2.camera_id)
+            points1 = camera1.cam_from_img(keypoints[first][inliers[:, 0]])
+            points2 = camera2.cam_from_img(keypoints[second][inliers[:, 1]])
+            distance = sampson_distance(camera_from_world(image1)[:3], camera_from_world(image2)[:3], points1, points2)
+            focal = 0.5 * (camera1.mean_focal_length() + camera2.mean_focal_length())
+            total += len(inliers)
+            explained += len(inliers) if float(np.median(distance)) * focal < threshold_px else 0
+    return explained, total
+
+
+def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher: str, mapper: str = "auto", camera_model: str = "OPENCV",
+                single_camera: bool = True, max_size: int = 1600, max_features: int = 8192, seed: int = 0,
+                progress: bool = True, verbose: bool = False) -> tuple[Any | None, dict[str, float], dict[str, Any]]:
+    """Structure from motion of ``images/<name>`` for each name: ``colmap_dir/database.db`` and the chosen model,
+    also written to ``colmap_dir/sparse/0`` (COLMAP's binary format).
+
+    Args:
+        matcher: ``exhaustive`` or ``sequential`` (see :func:`choose_matcher`).
+        mapper: ``global``, ``incremental`` (see :func:`map_images`) or ``auto``: both, and the model that explains
+            the most verified matches kept (:func:`verified_matches_explained`).
+        camera_model: one of :data:`CAMERA_MODELS`.
+        single_camera: one camera (intrinsics) shared by every image, as for photos from one phone at one zoom.
+        max_size: the long side, in pixels, images are read at for feature extraction.
+        max_features: SIFT features kept an image.
+    Returns:
+        the model (a ``pycolmap.Reconstruction``, the largest its mapper built; None when none was built), the seconds
+        each stage took, and of each mapper run its images registered and fraction of verified matches explained
+        (``mappers``) and which was kept (``mapper``).
+    """
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)} (models whose lenses the transforms.json "
+                         f"loader can undo), got '{camera_model}'")
+    if mapper not in MAPPERS:
+        raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got '{mapper}'")
+    if matcher not in ("exhaustive", "sequential"):
+        raise ValueError(f"reconstruct: matcher must be exhaustive or sequential, got '{matcher}'")
+    colmap_dir.mkdir(parents=True, exist_ok=True)
+    database = colmap_dir / "database.db"
+    seconds = {}
+    with colmap_log(verbose):
+        started = time.perf_counter()
+        extract_features(database, images, names, camera_model, single_camera, max_size, max_features, progress)
+        seconds["features"] = time.perf_counter() - started
+
+        started = time.perf_counter()
+        pairs = exhaustive_pairs(len(names)) if matcher == "exhaustive" else sequential_pairs(len(names))
+        match_features(database, names, pairs, colmap_dir / "pairs", seed, progress)
+        seconds["matching"] = time.perf_counter() - started
+
+        started = time.perf_counter()
+        candidates, tried = {}, {}
+        for name in ("global", "incremental") if mapper == "auto" else (mapper,):
+            models = map_images(database, images, colmap_dir / f"models_{name}", len(names), name, seed, progress)
+            if models:
+                explained, total = verified_matches_explained(database, models[0])
+                candidates[name] = (explained, models[0])
+                tried[name] = {"registered": models[0].num_reg_images(), "verified_matches_explained": round(explained / max(total, 1), 4)}
+            else:
+                tried[name] = {"registered": 0, "verified_matches_explained": 0.0}
+        seconds["mapping"] = time.perf_counter() - started
+    shutil.rmtree(colmap_dir / "pairs", ignore_errors=True)
+    for name in tried:
+        shutil.rmtree(colmap_dir / f"models_{name}", ignore_errors=True)
+    if not candidates:
+        return None, seconds, {"mapper": None, "mappers": tried}
+    kept = max(candidates, key=lambda name: candidates[name][0])
+    model = candidates[kept][1]
+    (colmap_dir / "sparse" / "0").mkdir(parents=True, exist_ok=True)
+    model.write(colmap_dir / "sparse" / "0")
+    return model, seconds, {"mapper": kept, "mappers": tried}
+
+
+def camera_intrinsics(camera: Any) -> dict[str, Any]:
+    """A COLMAP camera as transforms.json keys: ``camera_model``, ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``k1``, ``k2``,
+    ``p1``, ``p2`` (zero where the model has no such term), ``w``, ``h``, in the pixels of the images it saw."""
+    model = camera.model.name
+    if model not in CAMERA_PARAMETERS:
+        raise ValueError(f"COLMAP camera model {model} is not one the transforms.json loader reads ({', '.join(CAMERA_MODELS)})")
+    values = dict(zip(CAMERA_PARAMETERS[model], (float(value) for value in camera.params)))
+    if "f" in values:
+        values["fl_x"] = values["fl_y"] = values.pop("f")
+    keys = {"camera_model": model, "fl_x": values["fl_x"], "fl_y": values["fl_y"], "cx": values["cx"], "cy": values["cy"]}
+    keys.update({key: values.get(key, 0.0) for key in ("k1", "k2", "p1", "p2")})
+    keys.update({"w": int(camera.width), "h": int(camera.height)})
+    return keys
+
+
+def camera_from_world(image: Any) -> np.ndarray:
+    """(4, 4) world-to-camera matrix (OpenCV camera axes) of a registered COLMAP image."""
+    pose = image.cam_from_world
+    pose = pose() if callable(pose) else pose  # a method since pycolmap 3.12 (rigs), a property before
+    w2c = np.eye(4)
+    w2c[:3] = pose.matrix()
+    return w2c
+
+
+def reconstruction_to_transforms(reconstruction: Any, image_folder: str = "images") -> dict[str, Any]:
+    """A COLMAP model as a nerfstudio ``transforms.json`` dict, registered images in name order.
+
+    Each frame's ``transform_matrix`` is its OpenGL camera-to-world (x right, y up, looking down -z): the inverse of
+    COLMAP's world-to-camera with the camera's y and z axes flipped, in COLMAP's world coordinates (no axes swapped;
+    the loader centres, orients and scales the world itself). Intrinsics are global keys when the images share one
+    camera, per-frame keys otherwise. ``ply_file_path`` names the sparse points, written beside it.
+    """
+    images = sorted((reconstruction.image(image_id) for image_id in reconstruction.reg_image_ids()), key=lambda image: natural_key(image.name))
+    cameras = {image.camera_id for image in images}
+    meta: dict[str, Any] = camera_intrinsics(reconstruction.camera(next(iter(cameras)))) if len(cameras) == 1 else {}
+    frames = []
+    for image in images:
+        c2w = opengl_to_opencv(torch.linalg.inv(torch.from_numpy(camera_from_world(image))))  # its own inverse: OpenCV -> OpenGL too
+        frame = {"file_path": f"{image_folder}/{image.name}", "transform_matrix": c2w.tolist(), "colmap_im_id": int(image.image_id)}
+        if len(cameras) > 1:
+            frame.update(camera_intrinsics(reconstruction.camera(image.camera_id)))
+        frames.append(frame)
+    meta["frames"] = frames
+    meta["ply_file_path"] = "sparse_pc.ply"
+    return meta
+
+
+def sparse_points(reconstruction: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The model's 3D points: (P, 3) float64 positions in its world and (P, 3) uint8 RGB colours."""
+    points = list(reconstruction.points3D.values())
+    if not points:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
+    return np.stack([point.xyz for point in points]), np.stack([point.color for point in points]).astype(np.uint8)
+
+
+def model_statistics(reconstruction: Any) -> dict[str, float]:
+    """What says how good a model is: mean reprojection error (pixels), mean track length (images a 3D point is
+    seen in), mean observations a registered image, and the number of 3D points."""
+    return {
+        "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+        "mean_track_length": float(reconstruction.compute_mean_track_length()),
+        "mean_observations_per_image": float(reconstruction.compute_mean_observations_per_reg_image()),
+        "points": int(reconstruction.num_points3D()),
+    }
+
+
+def registered_names(reconstruction: Any) -> set[str]:
+    return {reconstruction.image(image_id).name for image_id in reconstruction.reg_image_ids()}
+

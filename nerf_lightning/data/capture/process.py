@@ -1,0 +1,266 @@
+"""A user's own capture, photos or a video, to a posed capture this project trains on: what ``nerf-process-data`` does.
+
+    input (folder of photos | video)
+      -> images/ (upright, full size) and images_2/, images_4/, images_8/          images.py, video.py
+      -> COLMAP features, matches, mapping, in-process through pycolmap              colmap.py
+      -> transforms.json (nerfstudio's layout), sparse_pc.ply, colmap/, report.json
+
+Everything is written into a hidden folder beside ``output`` and moved into ``output`` at the end, transforms.json
+last: a run that fails (bad images, too few registered, Ctrl-C) leaves ``output`` as it was and no
+transforms.json without its images. A capture that COLMAP cannot pose well stops with one line that names the
+images left out and what to change.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import shutil
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from PIL import Image
+from tqdm import tqdm
+
+from nerf_lightning.data.capture.colmap import (
+    CAMERA_MODELS,
+    MAPPERS,
+    MATCHERS,
+    choose_matcher,
+    import_pycolmap,
+    model_statistics,
+    reconstruct,
+    reconstruction_to_transforms,
+    registered_names,
+    sparse_points,
+)
+from nerf_lightning.data.capture.images import find_images, save_image, write_capture_image, write_downscaled
+from nerf_lightning.data.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
+from nerf_lightning.errors import ensure_writable
+from nerf_lightning.io import write_atomic, write_json
+
+log = logging.getLogger(__name__)
+
+ADVICE = ("photos with more overlap (each part of the scene in 3 or more of them, taken a step apart, not turning on "
+          "the spot), sharper ones (more light, steadier hands), a textured subject")
+
+
+def write_photos(paths: Sequence[Path], staging: Path, downscales: Sequence[int], progress: bool) -> dict[str, tuple[int, int]]:
+    """Each photo into ``staging/images`` and ``staging/images_<k>``; their names there and (width, height).
+    ValueError naming the photos that cannot be read."""
+    sizes, unreadable = {}, []
+    for path in tqdm(paths, desc="images", unit="image", disable=not progress):
+        try:
+            name, size = write_capture_image(path, staging, downscales)
+        except ValueError as error:
+            unreadable.append(str(error))
+            continue
+        if name in sizes:
+            raise ValueError(f"two inputs become images/{name} ({path.name} is one); rename one of them")
+        sizes[name] = size
+    if unreadable:
+        shown = "; ".join(unreadable[:3]) + (f"; and {len(unreadable) - 3} more" if len(unreadable) > 3 else "")
+        raise ValueError(f"could not read {len(unreadable)} of the {len(paths)} images in {paths[0].parent}: {shown}; "
+                         "remove them or convert them to JPEG or PNG")
+    return sizes
+
+
+def write_video_frames(video: Path, staging: Path, count: int, downscales: Sequence[int], progress: bool) -> tuple[dict[str, tuple[int, int]], list[dict]]:
+    """The sharpest frame of each of ``count`` stretches of ``video`` as ``frame_00001.jpg``, ... into
+    ``staging/images`` and ``staging/images_<k>``; their names and sizes, and which video frames they are."""
+    sizes = {}
+
+    def write(frame: np.ndarray, number: int) -> None:
+        name = f"frame_{number + 1:05d}.jpg"
+        image = Image.fromarray(frame)
+        save_image(image, staging / "images" / name)
+        write_downscaled(image, name, staging, downscales)
+        sizes[name] = image.size
+
+    with tqdm(desc="video frames", unit="frame", disable=not progress) as bar:
+        picked = pick_sharp_frames(video, count, write, progress=bar.update)
+    for entry, name in zip(picked, sizes):
+        entry["image"] = name
+    return sizes, picked
+
+
+def listed(names: Sequence[str], shown: int = 8) -> str:
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
+def check_registered(registered: int, unregistered: list[str], given: int, source: Path, matcher: str, min_registered: float) -> None:
+    """ValueError, one line naming the images left out and what to change, when COLMAP posed fewer than 3 images or
+    fewer than ``min_registered`` of them."""
+    change = ("try matcher=exhaustive, " if matcher == "sequential" else "") + ADVICE
+    if registered == 0:
+        raise ValueError(f"COLMAP registered none of the {given} images of {source}: no two of them matched well enough "
+                         f"to start a model; {change}")
+    if registered < 3:
+        raise ValueError(f"COLMAP registered only {registered} of the {given} images of {source}, 3 are needed; "
+                         f"these did not register: {listed(unregistered)}; {change}")
+    if registered < min_registered * given:
+        raise ValueError(f"COLMAP registered {registered} of the {given} images of {source} ({100.0 * registered / given:.0f}%, "
+                         f"under min_registered={min_registered:g}); these did not register: {listed(unregistered)}; "
+                         f"{change}; or min_registered=0 to keep the {registered} that did")
+
+
+def write_points_ply(path: Path, positions: np.ndarray, colours: np.ndarray) -> Path:
+    """(P, 3) positions and (P, 3) uint8 RGB colours as a binary PLY point cloud (trimesh)."""
+    cloud = trimesh.PointCloud(positions, colors=np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1))
+    return write_atomic(path, cloud.export(file_type="ply"))
+
+
+IMAGES_K = re.compile(r"images_\d+")
+
+
+def publish(staging: Path, output: Path) -> None:
+    """Move what ``staging`` holds into ``output``, replacing what an earlier run wrote there: its transforms.json
+    removed first and the new one moved in last, so that a transforms.json is never beside images of another run."""
+    output.mkdir(parents=True, exist_ok=True)
+    (output / "transforms.json").unlink(missing_ok=True)
+    replaced = staging / ".replaced"
+    replaced.mkdir()
+    entries = [entry.name for entry in staging.iterdir() if entry.name not in ("transforms.json", ".replaced")]
+    stale = [entry.name for entry in output.iterdir() if IMAGES_K.fullmatch(entry.name) and entry.name not in entries]
+    for name in [*entries, *stale]:
+        if (output / name).exists() or (output / name).is_symlink():
+            os.replace(output / name, replaced / name)
+        if name in entries:
+            os.replace(staging / name, output / name)
+    os.replace(staging / "transforms.json", output / "transforms.json")
+
+
+def process_capture(
+    input: str | Path,
+    output: str | Path,
+    frames: int = 100,
+    matcher: str = "auto",
+    mapper: str = "auto",
+    camera_model: str = "OPENCV",
+    single_camera: bool = True,
+    max_size: int = 1600,
+    max_features: int = 8192,
+    downscales: Sequence[int] = (2, 4, 8),
+    min_registered: float = 0.5,
+    seed: int = 0,
+    progress: bool = True,
+    verbose: bool = False,
+) -> dict[str, Any]:
+    """Pose a capture with COLMAP and write it as a nerfstudio capture into ``output`` (see the module's docstring).
+
+    Args:
+        input: a folder of photos (JPEG, PNG, TIFF, BMP, WebP; not its subfolders) or a video file.
+        output: the folder to write; what an earlier run wrote there is replaced, anything else is kept.
+        frames: for a video, how many frames to take, spread over the clip, the sharpest of each stretch.
+        matcher: ``auto``, ``exhaustive`` (every pair) or ``sequential`` (neighbours in name or time order).
+        mapper: ``auto`` (both of COLMAP's mappers, the model that explains the most verified matches kept),
+            ``global`` (GLOMAP) or ``incremental`` (COLMAP's classic mapper).
+        camera_model: COLMAP's lens model: OPENCV (k1, k2, p1, p2), SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE.
+        single_camera: all images share one camera's intrinsics (one phone, one zoom); false gives each its own.
+        max_size: the long side in pixels the images are read at for feature extraction (images/ keeps full size).
+        max_features: SIFT features an image.
+        downscales: factors of the smaller copies, ``images_<k>/``.
+        min_registered: stop with an error when COLMAP poses fewer than this fraction of the images.
+        seed: COLMAP's random seed.
+        progress: progress bars on stderr.
+        verbose: COLMAP's own log on stderr.
+    Returns:
+        the report (also written as ``report.json``): images given and registered, those left out, mean reprojection
+        error, mean track length, points, seconds of each stage.
+    """
+    started = time.perf_counter()
+    source, output = Path(input).expanduser(), Path(output).expanduser()
+    if not source.exists():
+        raise FileNotFoundError(f"input not found: {source} (expected a folder of images or a video file)")
+    if source.is_file() and not is_video(source):
+        raise ValueError(f"input {source} is a file but not a video ({', '.join(VIDEO_SUFFIXES)}); give a video or a folder of images")
+    if output.exists() and not output.is_dir():
+        raise NotADirectoryError(f"output must be a folder, got the file {output}")
+    if matcher not in MATCHERS:
+        raise ValueError(f"matcher must be one of {', '.join(MATCHERS)}, got '{matcher}'")
+    if mapper not in MAPPERS:
+        raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got '{mapper}'")
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)}, got '{camera_model}'")
+    if int(max_size) < 64:
+        raise ValueError(f"max_size must be at least 64 pixels, got {max_size}")
+    if any(int(factor) != factor or factor < 2 for factor in downscales):
+        raise ValueError(f"downscales must be integers of 2 or more, got {list(downscales)}")
+    if not 0.0 <= min_registered <= 1.0:
+        raise ValueError(f"min_registered must be a fraction between 0 and 1, got {min_registered}")
+    pycolmap = import_pycolmap()  # before any work: a missing extra is the first thing to hear about
+    from_video = source.is_file()
+    images_given = None if from_video else find_images(source)
+    ensure_writable(output.parent, "output")
+    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent))
+    try:
+        seconds: dict[str, float] = {}
+        report: dict[str, Any] = {"input": str(source), "output": str(output)}
+        if from_video:
+            sizes, report["video_frames"] = write_video_frames(source, staging, frames, downscales, progress)
+        else:
+            sizes = write_photos(images_given, staging, downscales, progress)
+        seconds["images"] = time.perf_counter() - started
+        names = list(sizes)
+        if len(names) < 3:
+            raise ValueError(f"{source} gave {len(names)} image{'s' if len(names) != 1 else ''}; structure from motion needs 3 or more "
+                             "(20 to 100 overlapping photos work well)")
+        if single_camera and len(set(sizes.values())) > 1:
+            first = names[0]
+            other = next(name for name in names if sizes[name] != sizes[first])
+            raise ValueError(f"the images are not all one size ({first} {sizes[first][0]}x{sizes[first][1]}, {other} "
+                             f"{sizes[other][0]}x{sizes[other][1]}); use single_camera=false (a camera each) or resize them alike")
+
+        chosen = choose_matcher(matcher, len(names), from_video)
+        model, stage_seconds, mapping = reconstruct(
+            staging / "images", names, staging / "colmap", matcher=chosen, mapper=mapper, camera_model=camera_model, single_camera=single_camera,
+            max_size=int(max_size), max_features=int(max_features), seed=seed, progress=progress, verbose=verbose)
+        seconds.update(stage_seconds)
+        posed = registered_names(model) if model is not None else set()
+        unregistered = [name for name in names if name not in posed]
+        check_registered(len(posed), unregistered, len(names), source, chosen, min_registered)
+
+        write_started = time.perf_counter()
+        transforms = reconstruction_to_transforms(model)
+        write_points_ply(staging / transforms["ply_file_path"], *sparse_points(model))
+        seconds["writing"] = time.perf_counter() - write_started
+        seconds["total"] = time.perf_counter() - started
+        report.update({
+            "images_given": len(names), "registered": len(posed), "unregistered": unregistered, "matcher": chosen,
+            "mapper": mapping["mapper"], "mappers": mapping["mappers"],
+            "verified_matches_explained": mapping["mappers"][mapping["mapper"]]["verified_matches_explained"],
+            "camera_model": camera_model, "single_camera": bool(single_camera), "max_size": int(max_size),
+            **model_statistics(model),
+            "camera": {key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "w", "h") if key in transforms},
+            "seconds": {stage: round(value, 2) for stage, value in seconds.items()},
+            "pycolmap": getattr(pycolmap, "__version__", "unknown"),
+        })
+        write_json(staging / "report.json", report)
+        write_json(staging / "transforms.json", transforms)
+        publish(staging, output)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return report
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The report as the few lines ``nerf-process-data`` prints."""
+    given, registered = report["images_given"], report["registered"]
+    output = report["output"]
+    lines = [
+        f"registered {registered} of {given} images ({100.0 * registered / given:.0f}%; {report['matcher']} matching, {report['mapper']} mapping, "
+        f"{report['camera_model']} camera{'' if report['single_camera'] else 's'})",
+        f"mean reprojection error {report['mean_reprojection_error_px']:.2f} px, mean track length {report['mean_track_length']:.1f} "
+        f"images, {report['points']} points; the poses explain {100.0 * report['verified_matches_explained']:.0f}% of the verified matches",
+        "did not register: " + (listed(report["unregistered"]) if report["unregistered"] else "none"),
+        f"{report['seconds']['total']:.0f} s: " + ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items() if stage != "total"),
+        f"wrote {output}/transforms.json, images/ (and smaller copies), sparse_pc.ply, colmap/, report.json",
+        f"next: nerf-train experiment=fast_unbounded data.root={output}",
+    ]
+    return "\n".join(lines)

@@ -149,6 +149,57 @@ class StepOrTimeCheckpoint(ModelCheckpoint):
             self._train_time_interval = timedelta(seconds=float(train_time_interval))
 
 
+class CheckpointAtMinutes(L.Callback):
+    """Saves ``<dirpath>/minute_<m>.ckpt`` when training time first reaches each of ``minutes`` (validation not
+    counted), and the last weights as the remaining marks' when training stops before them; ``marks.json`` there
+    lists each file's step and training seconds. For PSNR-against-time curves measured after training
+    (``scripts/bench_gpu.py``), so that evaluating costs the run nothing."""
+
+    def __init__(self, dirpath: str, minutes: list[float]) -> None:
+        if not minutes or any(m <= 0 for m in minutes):
+            raise ValueError(f"CheckpointAtMinutes.minutes must be a list of minutes > 0, got {minutes}")
+        self.dirpath = Path(dirpath)
+        self.pending = sorted(float(m) for m in minutes)
+        self.marks: list[dict[str, Any]] = []
+        self._started: float | None = None
+        self._validation_started: float | None = None
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._started = time.perf_counter()
+
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._validation_started = time.perf_counter()
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self._validation_started is not None and self._started is not None:
+            self._started += time.perf_counter() - self._validation_started
+        self._validation_started = None
+
+    def _save(self, trainer: L.Trainer, minutes: float, seconds: float) -> None:
+        path = self.dirpath / f"minute_{minutes:g}.ckpt"
+        trainer.save_checkpoint(path)
+        self.marks.append({"minutes": minutes, "path": str(path), "step": trainer.global_step, "training_seconds": round(seconds, 2)})
+        if trainer.is_global_zero:
+            write_json(self.dirpath / "marks.json", self.marks)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if not self.pending or self._started is None:
+            return
+        seconds = time.perf_counter() - self._started
+        if seconds >= self.pending[0] * 60:
+            if torch.cuda.is_available():
+                torch.cuda.synchronize()  # the clock counts the queued steps too
+                seconds = time.perf_counter() - self._started
+            self._save(trainer, self.pending.pop(0), seconds)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.pending and self._started is not None:
+            seconds = time.perf_counter() - self._started
+            for minutes in list(self.pending):  # max_time or max_steps came first: the last weights stand for the rest
+                self._save(trainer, minutes, seconds)
+            self.pending.clear()
+
+
 class RunConfigInCheckpoint(L.Callback):
     """Stores the run's resolved config and the model's kind in every checkpoint.
 

@@ -110,7 +110,7 @@ class OccupancyGrid(nn.Module):
         coords = torch.stack([cells // self.resolution**2, cells // self.resolution % self.resolution, cells % self.resolution], dim=-1)
         unit = (coords + torch.rand(coords.shape, generator=generator)) / self.resolution
         cells, points = cells.to(self.aabb.device), self.cell_points(unit.to(self.aabb))
-        density = torch.cat([density_fn(part) for part in points.split(chunk_size)])
+        density = self._densities(density_fn, points, chunk_size)
         occupancy, estimate = self.occupancy.view(-1), density.to(self.occupancy) * step_size
         if step < self.warmup_steps:  # every cell was just evaluated: take the new estimate as it is
             occupancy.copy_(estimate)
@@ -119,11 +119,18 @@ class OccupancyGrid(nn.Module):
         self.binary.copy_(self.occupancy > min(self.threshold, float(self.occupancy.mean())))
         return True
 
+    def _densities(self, density_fn: DensityFn, points: torch.Tensor, chunk_size: int) -> torch.Tensor:
+        """(M,) float32 densities at (M, 3) points, outside any autocast: under bf16-mixed an untrained field's
+        densities round to a few values, and a grid of equal values has no cell above its mean (an empty grid, no
+        samples, no gradient: training would never start)."""
+        with torch.autocast(device_type=points.device.type, enabled=False):
+            return torch.cat([density_fn(part).float() for part in points.split(chunk_size)])
+
     def mark_from_density(self, density_fn: DensityFn, step_size: float, chunk_size: int = 65536) -> None:
         """Set the grid at once from the density at the cell centres (no EMA): for a known field or a checkpoint."""
         with torch.no_grad():
             points = self.cell_centres().reshape(-1, 3)
-            density = torch.cat([density_fn(part) for part in points.split(chunk_size)])
+            density = self._densities(density_fn, points, chunk_size)
             self.occupancy.copy_((density * step_size).reshape(self.occupancy.shape))
             self.binary.copy_(self.occupancy > min(self.threshold, float(self.occupancy.mean())))
 

@@ -314,3 +314,20 @@ def test_marching_and_rendering_give_the_same_result_on_cuda():
     assert on_cuda["n_evaluated"] == on_cpu["n_evaluated"]
     for key in ("rgb", "depth", "accumulation"):
         torch.testing.assert_close(on_cuda[key].cpu(), on_cpu[key], atol=1e-4, rtol=1e-4)
+
+
+def test_a_refresh_under_bf16_autocast_measures_density_in_float32():
+    """Under bf16-mixed an untrained field's densities round to a few values (1 + 1e-3 x is 1.0 in bfloat16); a grid
+    refreshed from those has no cell above its mean: no samples, no gradient, training never starts. The refresh
+    leaves autocast, so the grid keeps the cells whose float32 density is above the mean."""
+    torch.manual_seed(0)
+    layer = torch.nn.Linear(3, 1)
+    with torch.no_grad():
+        layer.weight.fill_(1e-3)
+        layer.bias.fill_(1.0)
+    grid = OccupancyGrid([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], resolution=16, update_every=1, warmup_steps=10)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert layer(torch.rand(5, 3)).dtype == torch.bfloat16
+        assert len(torch.unique(layer(torch.rand(4096, 3) * 2 - 1))) <= 2  # what the grid would have seen
+        grid.update(0, lambda points: layer(points)[:, 0], step_size=0.01)
+    assert 0.3 < grid.binary.float().mean() < 0.7

@@ -115,3 +115,18 @@ def test_a_bad_device_stops_the_command_in_one_line(command, tmp_path):
                             cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "device must be auto, cpu, cuda, cuda:<index> or mps, got 'gpu'" in result.stderr
+
+
+def test_checkpoints_at_training_minutes(tiny_data, make_config, scene_cache, monkeypatch, tmp_path):
+    """A mark reached during training gets that step's weights; one training never reaches, the last weights."""
+    import json
+
+    from nerf_lightning.callbacks import CheckpointAtMinutes
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    marks = CheckpointAtMinutes(str(tmp_path / "marks"), minutes=[60.0, 1e-6])
+    trainer = fit(make_config(*tiny_overrides("fast", tiny_data), "data.val_every=null", "trainer.max_steps=3"), marks)
+    listed = json.loads((tmp_path / "marks" / "marks.json").read_text())
+    assert [(m["minutes"], m["step"]) for m in listed] == [(1e-6, 1), (60.0, trainer.global_step)]
+    assert torch.load(tmp_path / "marks" / "minute_1e-06.ckpt", weights_only=False)["global_step"] == 1
+    with pytest.raises(ValueError, match="minutes"):
+        CheckpointAtMinutes(str(tmp_path), minutes=[0])

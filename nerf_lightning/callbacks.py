@@ -24,6 +24,38 @@ from nerf_lightning.plots import plot_psnr_curves
 from nerf_lightning.video import write_gif
 
 
+class TrainingClock:
+    """Seconds of training: since :meth:`start`, less the stretches between :meth:`pause` and :meth:`resume`
+    (validations), plus ``before`` (the seconds of earlier sessions of a resumed run)."""
+
+    def __init__(self) -> None:
+        self.before = 0.0
+        self._started: float | None = None
+        self._paused: float | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._started is not None
+
+    def start(self) -> None:
+        self._started = time.perf_counter()
+
+    def pause(self) -> None:
+        self._paused = time.perf_counter()
+
+    def resume(self) -> None:
+        if self._paused is not None and self._started is not None:
+            self._started += time.perf_counter() - self._paused
+        self._paused = None
+
+    def seconds(self) -> float:
+        if self._started is None:
+            return self.before
+        now = time.perf_counter()
+        paused = now - self._paused if self._paused is not None else 0.0
+        return self.before + now - self._started - paused
+
+
 class Snapshots(L.Callback):
     """Saves what each validation renders and the run's PSNR curve.
 
@@ -42,28 +74,16 @@ class Snapshots(L.Callback):
             "train_step": [], "train_psnr": [], "train_seconds": [], "val_step": [], "val_psnr": [], "val_seconds": []
         }
         self._targets_logged: set[int] = set()
-        self._clock_start: float | None = None
-        self._validation_started: float | None = None
-        self._seconds_before = 0.0  # training seconds of earlier sessions of a resumed run
-
-    def _training_seconds(self) -> float:
-        """Seconds spent training so far: since the fit started, less validations (one in progress too)."""
-        if self._clock_start is None:
-            return self._seconds_before
-        now = time.perf_counter()
-        in_validation = now - self._validation_started if self._validation_started is not None else 0.0
-        return self._seconds_before + now - self._clock_start - in_validation
+        self.clock = TrainingClock()  # validation is not training time
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self._clock_start = time.perf_counter()
+        self.clock.start()
 
     def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self._validation_started = time.perf_counter()
+        self.clock.pause()
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self._validation_started is not None and self._clock_start is not None:
-            self._clock_start += time.perf_counter() - self._validation_started  # validation is not training time
-        self._validation_started = None
+        self.clock.resume()
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
         loss = outputs["loss"] if isinstance(outputs, dict) else outputs
@@ -71,7 +91,7 @@ class Snapshots(L.Callback):
             return
         self.history["train_step"].append(trainer.global_step)
         self.history["train_psnr"].append(float(mse_to_psnr(loss.detach().float())))
-        self.history["train_seconds"].append(round(self._training_seconds(), 4))
+        self.history["train_seconds"].append(round(self.clock.seconds(), 4))
 
     def on_validation_batch_end(
         self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0
@@ -107,7 +127,7 @@ class Snapshots(L.Callback):
         self.history["val_step"].append(trainer.global_step)
         self.history["val_psnr"].append(float(trainer.callback_metrics["val/psnr"]))
         # the validated weights are those after the last training step: its training clock, not the time since
-        self.history["val_seconds"].append(self.history["train_seconds"][-1] if self.history["train_seconds"] else round(self._training_seconds(), 4))
+        self.history["val_seconds"].append(self.history["train_seconds"][-1] if self.history["train_seconds"] else round(self.clock.seconds(), 4))
         if trainer.is_global_zero:
             write_json(self.output_dir / "psnr_history.json", self.history)
 
@@ -128,11 +148,11 @@ class Snapshots(L.Callback):
             write_gif(self.output_dir / "montage.gif", [iio.imread(path) for path in snapshots], fps=2.0)
 
     def state_dict(self) -> dict[str, Any]:
-        return {"history": self.history, "training_seconds": self._training_seconds()}
+        return {"history": self.history, "training_seconds": self.clock.seconds()}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.history.update({key: list(values) for key, values in state_dict["history"].items()})
-        self._seconds_before = float(state_dict.get("training_seconds", 0.0))
+        self.clock.before = float(state_dict.get("training_seconds", 0.0))
 
 
 class StepOrTimeCheckpoint(ModelCheckpoint):
@@ -161,19 +181,16 @@ class CheckpointAtMinutes(L.Callback):
         self.dirpath = Path(dirpath)
         self.pending = sorted(float(m) for m in minutes)
         self.marks: list[dict[str, Any]] = []
-        self._started: float | None = None
-        self._validation_started: float | None = None
+        self.clock = TrainingClock()
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self._started = time.perf_counter()
+        self.clock.start()
 
     def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self._validation_started = time.perf_counter()
+        self.clock.pause()
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self._validation_started is not None and self._started is not None:
-            self._started += time.perf_counter() - self._validation_started
-        self._validation_started = None
+        self.clock.resume()
 
     def _save(self, trainer: L.Trainer, minutes: float, seconds: float) -> None:
         path = self.dirpath / f"minute_{minutes:g}.ckpt"
@@ -183,18 +200,18 @@ class CheckpointAtMinutes(L.Callback):
             write_json(self.dirpath / "marks.json", self.marks)
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
-        if not self.pending or self._started is None:
+        if not self.pending or not self.clock.running:
             return
-        seconds = time.perf_counter() - self._started
+        seconds = self.clock.seconds()
         if seconds >= self.pending[0] * 60:
             if torch.cuda.is_available():
                 torch.cuda.synchronize()  # the clock counts the queued steps too
-                seconds = time.perf_counter() - self._started
+                seconds = self.clock.seconds()
             self._save(trainer, self.pending.pop(0), seconds)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self.pending and self._started is not None:
-            seconds = time.perf_counter() - self._started
+        if self.pending and self.clock.running:
+            seconds = self.clock.seconds()
             for minutes in list(self.pending):  # max_time or max_steps came first: the last weights stand for the rest
                 self._save(trainer, minutes, seconds)
             self.pending.clear()

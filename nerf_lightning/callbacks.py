@@ -56,7 +56,23 @@ class TrainingClock:
         return self.before + now - self._started - paused
 
 
-class Snapshots(L.Callback):
+class TimedCallback(L.Callback):
+    """A callback with a :class:`TrainingClock` that runs with training and stops during validations."""
+
+    def __init__(self) -> None:
+        self.clock = TrainingClock()
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.clock.start()
+
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.clock.pause()
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.clock.resume()
+
+
+class Snapshots(TimedCallback):
     """Saves what each validation renders and the run's PSNR curve.
 
     Every image a validation step returns under ``images`` (name -> (H, W, 3) or (H, W) in [0, 1]) is
@@ -74,16 +90,7 @@ class Snapshots(L.Callback):
             "train_step": [], "train_psnr": [], "train_seconds": [], "val_step": [], "val_psnr": [], "val_seconds": []
         }
         self._targets_logged: set[int] = set()
-        self.clock = TrainingClock()  # validation is not training time
-
-    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.clock.start()
-
-    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.clock.pause()
-
-    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.clock.resume()
+        super().__init__()  # the clock: validation is not training time
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
         loss = outputs["loss"] if isinstance(outputs, dict) else outputs
@@ -169,7 +176,7 @@ class StepOrTimeCheckpoint(ModelCheckpoint):
             self._train_time_interval = timedelta(seconds=float(train_time_interval))
 
 
-class CheckpointAtMinutes(L.Callback):
+class CheckpointAtMinutes(TimedCallback):
     """Saves ``<dirpath>/minute_<m>.ckpt`` when training time first reaches each of ``minutes`` (validation not
     counted), and the last weights as the remaining marks' when training stops before them; ``marks.json`` there
     lists each file's step and training seconds. For PSNR-against-time curves measured after training
@@ -181,16 +188,7 @@ class CheckpointAtMinutes(L.Callback):
         self.dirpath = Path(dirpath)
         self.pending = sorted(float(m) for m in minutes)
         self.marks: list[dict[str, Any]] = []
-        self.clock = TrainingClock()
-
-    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.clock.start()
-
-    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.clock.pause()
-
-    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.clock.resume()
+        super().__init__()
 
     def _save(self, trainer: L.Trainer, minutes: float, seconds: float) -> None:
         path = self.dirpath / f"minute_{minutes:g}.ckpt"

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from nerf_lightning import __version__
 from nerf_lightning.checkpoints import CHECKPOINT_FORMAT
+from nerf_lightning.devices import synchronize
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.plots import plot_psnr_curves
@@ -202,9 +203,8 @@ class CheckpointAtMinutes(TimedCallback):
             return
         seconds = self.clock.seconds()
         if seconds >= self.pending[0] * 60:
-            if torch.cuda.is_available():
-                torch.cuda.synchronize()  # the clock counts the queued steps too
-                seconds = self.clock.seconds()
+            synchronize(pl_module.device)  # the clock counts the queued steps too
+            seconds = self.clock.seconds()
             self._save(trainer, self.pending.pop(0), seconds)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

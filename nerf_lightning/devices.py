@@ -46,3 +46,12 @@ def enable_tf32() -> None:
     mantissa inside the product, float32 accumulation), as Lightning suggests; nothing elsewhere."""
     if torch.cuda.is_available():
         torch.set_float32_matmul_precision("high")
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the work queued on ``device`` (CUDA, Apple GPU; nothing to wait for on a CPU), so that a clock read
+    after it counts that work."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()

@@ -29,14 +29,9 @@ from bench_nerf import train_preset  # noqa: E402
 from nerf_lightning.checkpoints import load_model, read_checkpoint  # noqa: E402
 from nerf_lightning.data.formats import load_blender  # noqa: E402
 from nerf_lightning.data.scene import evenly_spaced  # noqa: E402
-from nerf_lightning.devices import resolve_device  # noqa: E402
+from nerf_lightning.devices import resolve_device, synchronize  # noqa: E402
 from nerf_lightning.evaluation import evaluate_views  # noqa: E402
 from nerf_lightning.plots import plot_psnr_curves  # noqa: E402
-
-
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def device_info(device: torch.device) -> dict:

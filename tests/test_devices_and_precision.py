@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -13,6 +14,7 @@ from torch.utils._pytree import tree_leaves
 
 from hydra.utils import instantiate
 
+from nerf_lightning.callbacks import CheckpointAtMinutes
 from nerf_lightning.devices import resolve_device
 from tests.test_experiments import EXPERIMENTS, tiny_data, tiny_overrides  # noqa: F401 (tiny_data is a fixture)
 
@@ -119,9 +121,6 @@ def test_a_bad_device_stops_the_command_in_one_line(command, tmp_path):
 
 def test_checkpoints_at_training_minutes(tiny_data, make_config, scene_cache, monkeypatch, tmp_path):
     """A mark reached during training gets that step's weights; one training never reaches, the last weights."""
-    import json
-
-    from nerf_lightning.callbacks import CheckpointAtMinutes
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     marks = CheckpointAtMinutes(str(tmp_path / "marks"), minutes=[60.0, 1e-6])
     trainer = fit(make_config(*tiny_overrides("fast", tiny_data), "data.val_every=null", "trainer.max_steps=3"), marks)

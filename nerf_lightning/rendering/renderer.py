@@ -21,12 +21,21 @@ class VolumeRenderer:
 
     Each round lays its samples out as an (alive rays, samples_per_round) table, so that the sums along a ray are
     short float32 cumulative sums that restart at every ray.
+
+    ``gradient_scaling_distance`` d > 0 (Floaters No More, Philip & Deschaintre 2023; nerfstudio's
+    ``use_gradient_scaling``): in training, the gradients reaching the field from a sample at distance t < d are
+    scaled by (t / d)^2 (the values are unchanged). A camera's first stretch of space is seen by it alone and gets as
+    many gradients as the subject: without the scaling, a proposal sampler, which samples there densely, lets
+    each camera paint its picture on a fog just in front of it (the "floaters" of real captures). d is in the
+    sampling space's units: about the distance from the cameras to the subject (1 in a normalised capture).
     """
 
-    def __init__(self, early_stop_eps: float = 1e-4, samples_per_round: int = 16) -> None:
-        if samples_per_round < 1 or early_stop_eps < 0:
-            raise ValueError(f"VolumeRenderer needs samples_per_round >= 1 and early_stop_eps >= 0, got {samples_per_round}, {early_stop_eps}")
+    def __init__(self, early_stop_eps: float = 1e-4, samples_per_round: int = 16, gradient_scaling_distance: float = 0.0) -> None:
+        if samples_per_round < 1 or early_stop_eps < 0 or gradient_scaling_distance < 0:
+            raise ValueError(f"VolumeRenderer needs samples_per_round >= 1, early_stop_eps >= 0 and gradient_scaling_distance >= 0, "
+                             f"got {samples_per_round}, {early_stop_eps}, {gradient_scaling_distance}")
         self.early_stop_eps, self.samples_per_round = early_stop_eps, samples_per_round
+        self.gradient_scaling_distance = gradient_scaling_distance
 
     def __call__(self, field: Field, rays: Rays, samples: RaySamples, space: SceneSpace) -> dict[str, torch.Tensor]:
         """Render N rays from their packed samples.
@@ -63,6 +72,9 @@ class VolumeRenderer:
             starts, ends = samples.t_starts[ids], samples.t_ends[ids]
             mids = 0.5 * (starts + ends)
             out = field(space.to_field(rays.points(ray_of, mids)), rays.viewdirs[ray_of])
+            if self.gradient_scaling_distance > 0 and torch.is_grad_enabled():
+                scale = (mids / self.gradient_scaling_distance).square().clamp(max=1.0)  # (m,)
+                out = {"density": scale_gradient(out["density"], scale), "rgb": scale_gradient(out["rgb"], scale[:, None])}
             optical_depth = torch.zeros(valid.shape, dtype=colour.dtype, device=device).masked_scatter(valid, (out["density"] * (ends - starts)).to(colour.dtype))
             rgb = torch.zeros(*valid.shape, 3, dtype=colour.dtype, device=device).masked_scatter(valid[..., None], out["rgb"].to(colour.dtype))
             depth_along = optical_depth.cumsum(dim=1)  # (A, k) inclusive
@@ -83,4 +95,10 @@ class VolumeRenderer:
         }
 
     def __repr__(self) -> str:
-        return f"VolumeRenderer(early_stop_eps={self.early_stop_eps:g}, samples_per_round={self.samples_per_round})"
+        return (f"VolumeRenderer(early_stop_eps={self.early_stop_eps:g}, samples_per_round={self.samples_per_round}, "
+                f"gradient_scaling_distance={self.gradient_scaling_distance:g})")
+
+
+def scale_gradient(values: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """``values`` unchanged, with the gradient flowing back through them multiplied by ``scale`` (broadcast)."""
+    return values * scale + (values * (1.0 - scale)).detach()

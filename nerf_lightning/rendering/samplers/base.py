@@ -54,7 +54,7 @@ def stratified_edges(t_enter: torch.Tensor, t_exit: torch.Tensor, n_samples: int
     return edges
 
 
-def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_samples: int, perturb: bool) -> torch.Tensor:
+def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_samples: int, perturb: bool, padding: float = 1e-5) -> torch.Tensor:
     """Inverse-CDF importance sampling (NeRF's hierarchical sampling).
 
     Args:
@@ -62,12 +62,15 @@ def sample_pdf(edges: torch.Tensor, weights: torch.Tensor, n_samples: int, pertu
         weights: (N, B) non-negative weights of the bins (need not be normalised; detached here).
         n_samples: points to draw per ray.
         perturb: draw at stratified random quantiles (one in each 1/n_samples slice); otherwise at evenly spaced ones.
+        padding: added to every bin's weight before normalising: 1e-5 (NeRF's) only keeps the CDF strictly
+            increasing; 0.01 (nerfstudio's ``histogram_padding``, what a proposal sampler uses) also keeps drawing
+            some samples from bins the weights call empty, so that what is there can still be found.
 
     Returns:
         (N, n_samples) sorted distances, distributed within each bin uniformly and across bins in proportion to
         the weights. Not differentiable.
     """
-    weights = weights.detach() + 1e-5  # no empty bin: keeps the CDF strictly increasing
+    weights = weights.detach() + padding  # no empty bin: keeps the CDF strictly increasing
     pdf = weights / weights.sum(dim=-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[..., :1]), torch.cumsum(pdf, dim=-1)], dim=-1)  # (N, B + 1)
     cdf[..., -1] = 1.0

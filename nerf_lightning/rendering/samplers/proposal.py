@@ -105,6 +105,7 @@ class ProposalSampler(RaySampler):
         warmup_steps: int = 100,
         interlevel_weight: float = 1.0,
         distortion_weight: float = 0.002,
+        padding: float = 0.01,
     ) -> None:
         super().__init__()
         if len(proposal_fields) != len(proposal_samples) or not proposal_fields:
@@ -117,6 +118,7 @@ class ProposalSampler(RaySampler):
         self.anneal_steps, self.anneal_slope = anneal_steps, anneal_slope
         self.update_every, self.warmup_steps = update_every, warmup_steps
         self.interlevel_weight, self.distortion_weight = interlevel_weight, distortion_weight
+        self.padding = padding
         self.step = 0
 
     def update(self, step: int, field: Field) -> None:
@@ -136,13 +138,13 @@ class ProposalSampler(RaySampler):
             if edges is None:
                 edges = initial_edges(t_enter, t_exit, n_samples, perturb)
             else:
-                edges = sample_pdf(edges, levels[-1][1].detach() ** exponent, n_samples + 1, perturb)
+                edges = sample_pdf(edges, levels[-1][1].detach() ** exponent, n_samples + 1, perturb, self.padding)
             mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
             points = space.to_field(rays.origins[:, None, :] + rays.directions[:, None, :] * mids[..., None])
             with torch.set_grad_enabled(learn):
                 weights = interval_weights(proposal.density(points).float(), edges)
             levels.append((edges, weights))
-        edges = sample_pdf(edges, levels[-1][1].detach() ** exponent, self.field_samples + 1, perturb)
+        edges = sample_pdf(edges, levels[-1][1].detach() ** exponent, self.field_samples + 1, perturb, self.padding)
         return RaySamples.from_edges(edges, field_edges=edges, proposal_levels=levels, proposal_learns=learn)
 
     def losses(self, samples: RaySamples, rendered: dict[str, torch.Tensor], target_rgb: torch.Tensor) -> dict[str, torch.Tensor]:

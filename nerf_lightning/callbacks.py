@@ -215,6 +215,22 @@ class CheckpointAtMinutes(TimedCallback):
             self.pending.clear()
 
 
+class StopAtTrainingMinutes(TimedCallback):
+    """Stops training once training time reaches ``minutes`` (validation not counted, unlike ``trainer.max_time``),
+    so that a benchmark gives every method the same training time however long its validations take."""
+
+    def __init__(self, minutes: float) -> None:
+        if minutes <= 0:
+            raise ValueError(f"StopAtTrainingMinutes.minutes must be > 0, got {minutes}")
+        self.minutes = float(minutes)
+        super().__init__()
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if self.clock.running and self.clock.seconds() >= self.minutes * 60:
+            synchronize(pl_module.device)
+            trainer.should_stop = True
+
+
 class RunConfigInCheckpoint(L.Callback):
     """Stores the run's resolved config and the model's kind in every checkpoint.
 

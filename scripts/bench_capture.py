@@ -5,12 +5,14 @@
     .venv/bin/python scripts/bench_capture.py --preset fast_unbounded --root ../shared/data/nerfstudio/fox \\
         --minutes 10 --out docs/bench/fox.json
 
-1. Trains ``experiment=<--preset>`` on ``--root`` for ``--minutes`` of wall time (validation on one view every
-   ``--val-every`` steps, its time left out of the training seconds; extra Hydra overrides after ``--``).
+1. Trains ``experiment=<--preset>`` on ``--root`` for ``--minutes`` of training time (validation on one view every
+   ``--val-every`` steps, its time not counted: ``StopAtTrainingMinutes``; extra Hydra overrides after ``--``).
 2. ``nerf-eval`` on its last checkpoint: PSNR and SSIM on the views of the held-out test split (``--eval-views``
    of them, evenly spaced, or all), timed.
 3. ``nerf-render`` of the scene's spiral path (``--frames`` at ``--render-scale``; an LLFF scene's own spiral has
    ``data.scene.render_frames`` frames), timed, and the GIFs' paths.
+4. With ``--compare A.json B.json``: one plot (``<out>.png``) of held-out PSNR against training minutes, this run's
+   validation curve beside those of earlier runs of this script (another preset on the same scene).
 Writes the JSON (and the run folder beside it, or ``--run-dir``). Exits 0 with "skipped" when --root is missing.
 """
 
@@ -26,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_nerf import train_preset  # noqa: E402
 
 from nerf_lightning.evaluation import evaluate_checkpoint  # noqa: E402
+from nerf_lightning.plots import plot_psnr_curves  # noqa: E402
 from nerf_lightning.checkpoints import load_model  # noqa: E402
 from nerf_lightning.rendering.views import render_camera_path  # noqa: E402
 
@@ -42,6 +45,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--run-dir", type=Path, default=None)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--compare", type=Path, nargs="*", default=[], help="earlier JSONs of this script to plot beside this run")
     parser.add_argument("overrides", nargs="*", help="more Hydra overrides, after --")
     args = parser.parse_args()
     if not args.root.exists():
@@ -50,7 +54,11 @@ def main() -> None:
 
     run_dir = (args.run_dir or args.out.with_suffix("")).resolve()
     # steps=None keeps the preset's max_steps and so its learning-rate schedule; the wall time stops it first
-    result = train_preset(args.preset, run_dir, args.root, None, args.minutes, args.val_every, 1, None, args.seed, False, args.overrides)
+    # --minutes of training, validations not counted (a 1008x756 validation view can take a minute on a CPU); the
+    # trainer's own max_time, wall time, only as a backstop
+    stop = f"+callbacks.stop_at_minutes={{_target_: nerf_lightning.callbacks.StopAtTrainingMinutes, minutes: {args.minutes}}}"
+    result = train_preset(args.preset, run_dir, args.root, None, 3 * args.minutes + 30, args.val_every, 1, None, args.seed, False,
+                          [*args.overrides, stop])
     ckpt = run_dir / "checkpoints" / "last.ckpt"
 
     started = time.perf_counter()
@@ -66,6 +74,11 @@ def main() -> None:
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
+    if args.compare:
+        runs = [result, *(json.loads(path.read_text()) for path in args.compare)]
+        curves = {f"{run['preset']} ({run['steps']} steps, final eval {run['eval']['mean']['psnr']:.2f} dB)":
+                  ([point["seconds"] / 60 for point in run["val_curve"]], [point["psnr"] for point in run["val_curve"]]) for run in runs}
+        plot_psnr_curves(curves, args.out.with_suffix(".png"), title=f"{args.root.name}: held-out PSNR, 2 CPU cores", xlabel="training minutes")
     print(json.dumps({k: v for k, v in result.items() if k not in ("val_curve", "overrides")} | {"eval": result["eval"]["mean"]}, indent=2))
 
 

@@ -14,7 +14,7 @@ from torch.utils._pytree import tree_leaves
 
 from hydra.utils import instantiate
 
-from nerf_lightning.callbacks import CheckpointAtMinutes
+from nerf_lightning.callbacks import CheckpointAtMinutes, StopAtTrainingMinutes
 from nerf_lightning.devices import resolve_device
 from tests.test_experiments import EXPERIMENTS, tiny_data, tiny_overrides  # noqa: F401 (tiny_data is a fixture)
 
@@ -129,3 +129,12 @@ def test_checkpoints_at_training_minutes(tiny_data, make_config, scene_cache, mo
     assert torch.load(tmp_path / "marks" / "minute_1e-06.ckpt", weights_only=False)["global_step"] == 1
     with pytest.raises(ValueError, match="minutes"):
         CheckpointAtMinutes(str(tmp_path), minutes=[0])
+
+
+def test_training_stops_at_training_minutes(tiny_data, make_config, scene_cache, monkeypatch):
+    """The first step takes longer than 1e-6 minutes of training: the run stops after it, not at max_steps."""
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    trainer = fit(make_config(*tiny_overrides("fast", tiny_data), "data.val_every=null", "trainer.max_steps=5"), StopAtTrainingMinutes(1e-6))
+    assert trainer.global_step == 1
+    with pytest.raises(ValueError, match="minutes"):
+        StopAtTrainingMinutes(0)

@@ -33,8 +33,8 @@ class RayDataModule(StepBatchesDataModule):
     :class:`Scene` and builds its :class:`~nerf_lightning.geometry.space.SceneSpace` (``space``), which the model
     renders in.
 
-    Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units) and ``rgb``
-    (N, 3) in [0, 1]. Validation batch: :func:`view_batch` of one view. The loader yields only the drawn pixels'
+    Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units), ``rgb``
+    (N, 3) in [0, 1] and ``camera_index`` (N,), the training view of each ray. Validation batch: :func:`view_batch` of one view. The loader yields only the drawn pixels'
     indices (``pixel_index`` (N,)); once Lightning has moved them to the model's device,
     :meth:`on_after_batch_transfer` computes the rays there from the cameras of those pixels
     (:func:`~nerf_lightning.geometry.rays.indexed_pixel_rays`) and gathers their colours from the uint8 images,
@@ -105,7 +105,8 @@ class RayDataModule(StepBatchesDataModule):
         K, c2w, rgb = self.cameras_and_images(index.device)
         rays_o, rays_d = indexed_pixel_rays(K, c2w, self.scene.train.height, self.scene.train.width, index)
         colours = self.rgb[index.cpu()].to(index.device, non_blocking=True) if rgb is None else rgb[index]
-        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours)}
+        camera_index = index // (self.scene.train.height * self.scene.train.width)
+        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours), "camera_index": camera_index}
 
     def cameras_and_images(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The training cameras K (V, 3, 3), c2w (V, 4, 4) and the uint8 colours (V*H*W, 3) on ``device``, moved

@@ -1,5 +1,6 @@
 """Fields: functions of position (and direction) made of encodings and MLPs."""
 
+from nerf_lightning.fields.appearance import AppearanceEmbedding
 from nerf_lightning.fields.base import Field
 from nerf_lightning.fields.encodings import SinusoidalEncoding, SphericalHarmonicsEncoding
 from nerf_lightning.fields.grid import DensityField, GridField
@@ -10,6 +11,6 @@ from nerf_lightning.fields.nerf import NeRFField
 from nerf_lightning.fields.tensorf import TensorVMEncoding
 
 __all__ = [
-    "MLP", "DensityField", "Field", "GridField", "HashGridEncoding", "ImageField", "NeRFField", "SinusoidalEncoding", "SphericalHarmonicsEncoding",
+    "MLP", "AppearanceEmbedding", "DensityField", "Field", "GridField", "HashGridEncoding", "ImageField", "NeRFField", "SinusoidalEncoding", "SphericalHarmonicsEncoding",
     "TensorVMEncoding",
 ]

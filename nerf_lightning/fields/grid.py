@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from nerf_lightning.fields.appearance import AppearanceEmbedding
 from nerf_lightning.fields.encodings import SinusoidalEncoding, SphericalHarmonicsEncoding
 from nerf_lightning.fields.mlp import MLP
 
@@ -88,6 +89,9 @@ class GridField(nn.Module):
         geometry_features: width of the feature the density MLP hands the colour MLP.
         colour_layers: hidden layers of the colour MLP.
         direction_encoding: ``sh`` (spherical harmonics, 16 features) or ``sinusoidal`` (L = 4, 27 features).
+        appearance_dim: > 0 gives every training image a learnt vector of this width that the colour MLP also
+            sees (:class:`~nerf_lightning.fields.appearance.AppearanceEmbedding`, nerfacto's 32): colour may vary
+            with the image's exposure, density may not. Views that are not training images get the mean vector.
     """
 
     def __init__(
@@ -98,6 +102,7 @@ class GridField(nn.Module):
         geometry_features: int = 15,
         colour_layers: int = 2,
         direction_encoding: str = "sh",
+        appearance_dim: int = 0,
     ) -> None:
         super().__init__()
         self.register_buffer("aabb", check_aabb(aabb, type(self).__name__))
@@ -109,7 +114,8 @@ class GridField(nn.Module):
             self.direction_encoding = SinusoidalEncoding(3, 4)
         else:
             raise ValueError(f"{type(self).__name__}: direction_encoding must be sh or sinusoidal, got '{direction_encoding}'")
-        self.colour_mlp = MLP(geometry_features + self.direction_encoding.out_dim, hidden_width, colour_layers, 3)
+        self.appearance = AppearanceEmbedding(appearance_dim) if appearance_dim > 0 else None
+        self.colour_mlp = MLP(geometry_features + self.direction_encoding.out_dim + appearance_dim, hidden_width, colour_layers, 3)
 
     def density_and_feature(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., 3) field-space points -> density (...,) >= 0 and the geometry feature (..., geometry_features)."""
@@ -119,8 +125,14 @@ class GridField(nn.Module):
         """(..., 3) field-space points -> (...,) densities: what meshes and occupancy grids query."""
         return self.density_and_feature(points)[0]
 
-    def forward(self, points: torch.Tensor, viewdirs: torch.Tensor) -> dict[str, torch.Tensor]:
-        """field-space points (..., 3), unit view directions (..., 3) -> ``rgb`` (..., 3) in (0, 1), ``density`` (...,) >= 0."""
+    def forward(self, points: torch.Tensor, viewdirs: torch.Tensor, camera_indices: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """field-space points (..., 3), unit view directions (..., 3) and, with an appearance embedding, the (...,)
+        training image of each point (None: the mean appearance) -> ``rgb`` (..., 3) in (0, 1), ``density`` (...,) >= 0."""
         density, feature = self.density_and_feature(points)
-        rgb = torch.sigmoid(self.colour_mlp(torch.cat([feature, self.direction_encoding(viewdirs)], dim=-1)))
+        inputs = [feature, self.direction_encoding(viewdirs)]
+        if self.appearance is not None:
+            lead = points.shape[:-1]
+            flat = None if camera_indices is None else camera_indices.reshape(-1)
+            inputs.append(self.appearance(flat, lead.numel()).reshape(*lead, -1).to(feature.dtype))
+        rgb = torch.sigmoid(self.colour_mlp(torch.cat(inputs, dim=-1)))
         return {"rgb": rgb, "density": density}

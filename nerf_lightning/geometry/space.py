@@ -29,12 +29,14 @@ from nerf_lightning.geometry.rays import ndc_rays, ndc_to_world, ray_aabb_inters
 
 
 class Rays(NamedTuple):
-    """N rays in the sampling space: ``origins`` and ``directions`` (N, 3) (unit in the world, not in NDC), and
-    ``viewdirs`` (N, 3), the unit world directions a field sees."""
+    """N rays in the sampling space: ``origins`` and ``directions`` (N, 3) (unit in the world, not in NDC),
+    ``viewdirs`` (N, 3), the unit world directions a field sees, and ``camera_indices`` (N,), the training image
+    of each ray (for a field's appearance embedding), or None for rays of other views."""
 
     origins: torch.Tensor
     directions: torch.Tensor
     viewdirs: torch.Tensor
+    camera_indices: torch.Tensor | None = None
 
     def points(self, ray_indices: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """(M,) ray of each sample and (M,) distances -> (M, 3) points in the sampling space."""

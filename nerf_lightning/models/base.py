@@ -33,8 +33,12 @@ class FieldModule(L.LightningModule):
         self.make_optimizer = optimizer
         self.make_scheduler = scheduler
 
+    def parameter_groups(self) -> Any:
+        """What the optimiser trains: every parameter, or a list of groups (dicts with their own options)."""
+        return self.parameters()
+
     def configure_optimizers(self) -> Any:
-        optimizer = self.make_optimizer(params=self.parameters())
+        optimizer = self.make_optimizer(params=self.parameter_groups())
         if self.make_scheduler is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.make_scheduler(optimizer=optimizer), "interval": "step"}}

@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from torch import nn
 from torchmetrics import MeanMetric
 
+from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import image_metrics, mse_to_psnr
 from nerf_lightning.models.base import FieldModule
@@ -33,6 +34,9 @@ class RadianceFieldModule(FieldModule):
             whatever the sampler learns by gradient (a coarse network, proposal networks).
         renderer: the :class:`~nerf_lightning.rendering.renderer.VolumeRenderer` (its early stop and round size).
         chunk_size: rays rendered at once in evaluation, so memory stays bounded at any resolution.
+        camera_refinement: learn a pose correction for each training view
+            (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`, its own learning rate, its penalties
+            logged as ``train/loss_camera_*``); None keeps the poses as loaded.
     """
 
     kind = "radiance_field"
@@ -45,11 +49,13 @@ class RadianceFieldModule(FieldModule):
         scheduler: Callable[..., Any] | None = None,
         renderer: VolumeRenderer | None = None,
         chunk_size: int = 4096,
+        camera_refinement: CameraRefinement | None = None,
     ) -> None:
         super().__init__(optimizer, scheduler)
         self.field, self.sampler = field, sampler
         self.renderer = renderer or VolumeRenderer()
         self.chunk_size = chunk_size
+        self.camera_refinement = camera_refinement
         self.space = SceneSpace()
         # the mean over the validated views where a surface is seen (NaN views left out), summed over DDP ranks
         self.val_depth_error = MeanMetric(nan_strategy="ignore")
@@ -62,15 +68,32 @@ class RadianceFieldModule(FieldModule):
                 space.check_box(aabb, f"model.{name}.aabb")
         self.space = space.to(self.device)
 
+    def setup(self, stage: str) -> None:
+        """Size what is learnt a training view (the field's appearance embedding, the camera corrections) to the
+        training views (before the optimiser is built and a checkpoint is restored)."""
+        scene = getattr(getattr(getattr(self, "trainer", None), "datamodule", None), "scene", None)
+        for per_view in (getattr(self.field, "appearance", None), self.camera_refinement):
+            if per_view is not None and scene is not None:
+                per_view.resize(len(scene.train))
+
+    def parameter_groups(self) -> Any:
+        """The camera corrections, if any, in their own group at their own learning rate; the rest at the optimiser's."""
+        if self.camera_refinement is None:
+            return self.parameters()
+        refinement = {id(p) for p in self.camera_refinement.parameters()}
+        return [{"params": [p for p in self.parameters() if id(p) not in refinement]},
+                {"params": list(self.camera_refinement.parameters()), "lr": self.camera_refinement.lr}]
+
     def on_fit_start(self) -> None:
         space = getattr(getattr(self.trainer, "datamodule", None), "space", None)
         if space is not None:
             self.use_space(space)
 
-    def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False) -> dict[str, Any]:
-        """(N, 3) world rays with unit directions -> rgb (N, 3), depth (N,), accumulation (N,), and the renderer's
-        ``weights`` and ``n_evaluated`` and the sampler's ``samples`` (see :class:`VolumeRenderer`)."""
-        rays = self.space.rays(rays_o, rays_d)
+    def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False, camera_indices: torch.Tensor | None = None) -> dict[str, Any]:
+        """(N, 3) world rays with unit directions (and (N,) the training image of each, or None for other views) ->
+        rgb (N, 3), depth (N,), accumulation (N,), and the renderer's ``weights`` and ``n_evaluated`` and the
+        sampler's ``samples`` (see :class:`VolumeRenderer`)."""
+        rays = self.space.rays(rays_o, rays_d)._replace(camera_indices=camera_indices)
         samples = self.sampler.sample(rays, self.space, self.field, perturb)
         out = self.renderer(self.field, rays, samples, self.space)
         out["samples"] = samples
@@ -84,9 +107,14 @@ class RadianceFieldModule(FieldModule):
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)
-        out = self.render(batch["rays_o"], batch["rays_d"], perturb=True)
+        rays_o, rays_d, camera_index = batch["rays_o"], batch["rays_d"], batch.get("camera_index")
+        if self.camera_refinement is not None and camera_index is not None:
+            rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
+        out = self.render(rays_o, rays_d, perturb=True, camera_indices=camera_index)
         mse = F.mse_loss(out["rgb"], batch["rgb"])
         sampler_losses = self.sampler.losses(out["samples"], out, batch["rgb"])
+        if self.camera_refinement is not None:
+            sampler_losses.update(self.camera_refinement.penalties())
         loss = mse + sum(sampler_losses.values())
         if not loss.requires_grad:  # no ray of the batch met an occupied cell: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0

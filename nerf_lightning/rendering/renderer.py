@@ -71,7 +71,11 @@ class VolumeRenderer:
             ray_of = ray_ids[:, None].expand_as(valid)[valid]
             starts, ends = samples.t_starts[ids], samples.t_ends[ids]
             mids = 0.5 * (starts + ends)
-            out = field(space.to_field(rays.points(ray_of, mids)), rays.viewdirs[ray_of])
+            points, viewdirs = space.to_field(rays.points(ray_of, mids)), rays.viewdirs[ray_of]
+            if getattr(field, "appearance", None) is not None:  # a field with per-image appearance: which image
+                out = field(points, viewdirs, None if rays.camera_indices is None else rays.camera_indices[ray_of])
+            else:
+                out = field(points, viewdirs)
             if self.gradient_scaling_distance > 0 and torch.is_grad_enabled():
                 scale = (mids / self.gradient_scaling_distance).square().clamp(max=1.0)  # (m,)
                 out = {"density": scale_gradient(out["density"], scale), "rgb": scale_gradient(out["rgb"], scale[:, None])}

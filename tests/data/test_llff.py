@@ -8,6 +8,7 @@ from nerf_lightning.data.formats import load_llff
 from nerf_lightning.data.formats.llff import write_poses_bounds
 from nerf_lightning.data.formats.transforms import apply_similarity
 from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.io import write_png
 from tests.conftest import SHARED_DATA
 
@@ -63,6 +64,24 @@ def test_llff_recentring_and_scaling_is_one_similarity_transform(procedural_scen
     # the kept similarity takes the file's cameras to the loaded ones
     mapped = apply_similarity(scene.world_from_capture.double(), original)
     torch.testing.assert_close(mapped, loaded, atol=1e-5, rtol=0)
+
+
+def test_a_360_llff_capture_is_normalised_like_a_transforms_capture(procedural_scene, tmp_path):
+    views = procedural_scene.train.subset(list(range(0, 80, 4)))  # 20 cameras all around the procedural subject
+    root = write_llff(views, tmp_path / "capture")
+    scene = load_llff(root, downscale=2, holdout_every=5, layout="360")
+    loaded = torch.cat([scene.train.c2w, scene.splits["val"].c2w]).double()
+    order = [i for i in range(20) if i % 5] + [0, 5, 10, 15]
+    torch.testing.assert_close(apply_similarity(scene.world_from_capture.double(), views.c2w[order].double()), loaded, atol=1e-5, rtol=0)
+    # the subject the cameras look at (the procedural origin) is the origin; the farthest camera coordinate is 1
+    subject = scene.world_from_capture.double() @ torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(subject[:3], torch.zeros(3, dtype=torch.float64), atol=1e-3, rtol=0)
+    assert float(loaded[:, :3, 3].abs().max()) == pytest.approx(1.0)
+    assert scene.near == 0.05 and "spiral" not in scene.splits  # renders take the orbit of other 360 captures
+    with pytest.raises(ValueError, match="forward-facing cameras"):
+        SceneSpace.from_scene(scene, ndc=True)
+    with pytest.raises(ValueError, match="data.scene.layout must be one of"):
+        load_llff(root, downscale=2, layout="sideways")
 
 
 def test_a_capture_with_only_full_size_images_gets_its_downscaled_folder_once(procedural_scene, tmp_path):

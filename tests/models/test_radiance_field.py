@@ -120,3 +120,20 @@ def test_a_batch_whose_rays_all_miss_the_occupied_cells_is_a_step_not_a_crash(ma
     loss = model.training_step(batch, 0)
     assert loss.requires_grad and torch.isfinite(loss)
     loss.backward()  # gradients of zero, not "element 0 of tensors does not require grad"
+
+
+def test_appearance_and_camera_refinement_train_and_load_from_their_checkpoint(make_config, scene_cache, monkeypatch):
+    from nerf_lightning.checkpoints import load_model, load_run_data
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    cfg = make_config("experiment=fast", "model.field.appearance_dim=4", "model/camera_refinement=so3xr3", "model.sampler.grid.resolution=16",
+                      "data.batch_size=256", "trainer.max_steps=4", "data.val_every=4", "data.val_views=1",
+                      "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false")
+    metrics = train(cfg)
+    assert {"train/loss_camera_rotation", "train/loss_camera_translation", "val/psnr"} <= metrics.keys()
+    model, info = load_model(cfg.paths.output_dir + "/checkpoints/last.ckpt")
+    n_train = len(load_run_data(info["config"]).scene.train)
+    assert model.field.appearance.table.shape == (n_train, 4) and model.camera_refinement.deltas.shape == (n_train, 6)
+    assert model.camera_refinement.deltas.abs().sum() > 0  # learnt, at their own learning rate
+    optimizer = model.configure_optimizers()["optimizer"]
+    assert [group["lr"] for group in optimizer.param_groups] == [model.make_optimizer.keywords["lr"], 6e-4]

@@ -102,3 +102,24 @@ def test_export_and_render_map_back_to_the_capture(trained, capture, tmp_path):
     distances = (centres - CAPTURE_FROM_PROCEDURAL[:3, 3].double()).norm(dim=-1)
     torch.testing.assert_close(distances, torch.full((4,), 12.0, dtype=torch.float64), atol=0.3, rtol=0)
 
+
+
+# experiment=nerfacto_360_cpu shrunk like QUICK_UNBOUNDED: proposal networks, a contracted hash grid, appearance.
+QUICK_NERFACTO = ["experiment=nerfacto_360_cpu", "data.scene.downscale=2", "data.scene.holdout_every=10", "model.field.encoding.n_levels=6",
+                  "model.field.encoding.log2_table_size=15", "model.field.encoding.max_resolution=256", "data.batch_size=512",
+                  "data.val_views=2", "data.val_every=300", "trainer.max_steps=300", "trainer.enable_progress_bar=false",
+                  "trainer.enable_model_summary=false"]
+
+# Why 15 dB: each validation view's own mean colour scores 12.0 dB; this run reached 18.5 dB (seed 0, 300 steps, 22 s
+# on 2 cores). Without the renderer's gradient scaling the proposal sampler let every camera paint its picture on a fog
+# just in front of it: 18 dB on the training views, 11.2 dB on the held-out ones, below the mean colour.
+NERFACTO_PSNR_BAR_DB = 15.0
+
+
+def test_the_360_preset_trains_on_a_capture_in_its_own_coordinates(capture, tmp_path):
+    root, _ = capture
+    metrics = train(compose_config([*QUICK_NERFACTO, f"data.root={root}", f"paths.output_dir={tmp_path / 'run'}"]))
+    assert metrics["step"] == 300 and metrics["val/psnr"] > NERFACTO_PSNR_BAR_DB
+    assert metrics["train/samples_per_ray"] <= 24  # the field sees the proposal sampler's 24 intervals a ray, no more
+    model, _ = load_model(tmp_path / "run" / "checkpoints" / "last.ckpt")
+    assert model.field.appearance.table.shape[0] == 54 and model.renderer.gradient_scaling_distance == 1.0

@@ -15,6 +15,7 @@ from nerf_lightning.rendering import (
     StratifiedSampler,
     VolumeRenderer,
 )
+from nerf_lightning.rendering.packed import RaySamples
 from nerf_lightning.rendering.samplers import stratified_edges
 from nerf_lightning.rendering.samplers.proposal import distortion_loss, interlevel_loss
 
@@ -197,3 +198,33 @@ def test_the_linear_time_distortion_loss_equals_its_quadratic_definition():
     quadratic = (weights[:, :, None] * weights[:, None, :] * (mids[:, :, None] - mids[:, None, :]).abs()).sum((1, 2))
     quadratic = (quadratic + (weights**2 * widths).sum(-1) / 3).mean()
     torch.testing.assert_close(distortion_loss(edges, weights), quadratic)
+
+
+class ConstantField(torch.nn.Module):
+    """One learnt density and colour everywhere."""
+
+    def __init__(self):
+        super().__init__()
+        self.sigma, self.colour = torch.nn.Parameter(torch.tensor(2.0)), torch.nn.Parameter(torch.tensor([0.2, 0.5, 0.7]))
+
+    def forward(self, points, viewdirs):
+        return {"density": self.sigma.expand(points.shape[0]), "rgb": self.colour.expand(points.shape[0], 3)}
+
+    def density(self, points):
+        return self.sigma.expand(points.shape[:-1])
+
+
+@pytest.mark.parametrize("t_mid, scale", [(0.5, 0.25), (0.25, 0.0625), (1.5, 1.0)])
+def test_gradient_scaling_scales_the_gradients_of_near_samples_by_the_squared_distance(t_mid, scale):
+    space = SceneSpace(near=0.0, far=4.0)
+    rays = space.rays(torch.zeros(3, 3), torch.nn.functional.normalize(torch.randn(3, 3), dim=-1))
+    samples = RaySamples.from_edges(torch.tensor([[t_mid - 0.1, t_mid + 0.1]]).expand(3, 2).contiguous())
+    grads, values = [], []
+    for distance in (0.0, 1.0):
+        field = ConstantField()
+        out = VolumeRenderer(early_stop_eps=0.0, gradient_scaling_distance=distance)(field, rays, samples, space)
+        out["rgb"].sum().backward()
+        grads.append(torch.cat([field.sigma.grad[None], field.colour.grad]))
+        values.append(out["rgb"].detach())
+    torch.testing.assert_close(values[1], values[0])  # the picture is the same; only the gradients shrink
+    torch.testing.assert_close(grads[1], grads[0] * scale)

@@ -11,6 +11,12 @@ axis the mean back axis), so the cameras look down -z of the world; that similar
 ``scene.world_from_capture``. Views are then converted to this project's
 OpenCV cameras. The ``spiral`` split (what ``render.path=spiral`` renders) is NeRF's spiral: ``n_frames`` cameras on two turns of an ellipse around the
 average camera, looking at the focus depth, with radii the 90th percentile of the camera offsets.
+
+A capture that walks all around its subject (``layout="360"``; COLMAP's ``imgs2poses`` writes the same file for it)
+is not forward-facing: NDC cannot hold it. It is normalised as a ``transforms.json`` capture is
+(:func:`~nerf_lightning.data.formats.transforms.normalising_transform`: centred on the cameras' focus, mean up +z,
+the farthest camera coordinate 1), for the contraction (``data.contract=true``, ``experiment=nerfacto_360_cpu``),
+and its render path is the orbit other 360 captures get.
 """
 
 from __future__ import annotations
@@ -28,9 +34,11 @@ from nerf_lightning.data.images import downscale as area_downscale
 from nerf_lightning.data.images import load_image
 from nerf_lightning.io import write_png
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
+from nerf_lightning.data.formats.transforms import apply_similarity, normalising_transform
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+LAYOUTS = ("forward", "360")
 
 
 def _normalize(v: np.ndarray) -> np.ndarray:
@@ -135,6 +143,7 @@ def load_llff(
     render_frames: int = 120,
     max_views: int | None = None,
     image_cache: str | None = None,
+    layout: str = "forward",
 ) -> Scene:
     """An LLFF capture.
 
@@ -151,7 +160,12 @@ def load_llff(
         max_views: keep at most this many training views, evenly spaced.
         image_cache: a folder to memory-map the decoded images from (written on first use; see
             :mod:`~nerf_lightning.data.image_stack`); None keeps them in memory.
+        layout: ``forward`` (cameras looking one way, NeRF's LLFF scenes: ``bd_factor`` and ``recentre`` apply, for
+            NDC) or ``360`` (cameras all around the subject: normalised as a transforms.json capture, see the
+            module's docstring; near 0.05 and far the farthest bound by default).
     """
+    if layout not in LAYOUTS:
+        raise ValueError(f"data.scene.layout must be one of {LAYOUTS} (forward-facing, or all around the subject), got '{layout}'")
     root = Path(root).expanduser()
     if not root.is_dir():
         raise FileNotFoundError(f"LLFF scene folder not found: {root}")
@@ -178,16 +192,22 @@ def load_llff(
     focal = full_focal / scale_x
 
     world_from_capture = np.eye(4)  # the similarity below, kept with the scene to map results back
-    if bd_factor is not None:
+    if layout == "360":
+        similarity = normalising_transform(torch.from_numpy(_homogeneous(c2w)), "focus")
+        c2w = apply_similarity(similarity, torch.from_numpy(_homogeneous(c2w))).numpy()[:, :3]
+        scale = float(similarity[:3, :3].det().abs() ** (1.0 / 3.0))
+        bounds, world_from_capture = bounds * scale, similarity.numpy()
+        near = 0.05 if near is None else near
+    elif bd_factor is not None:
         scale = 1.0 / (bounds.min() * bd_factor)
         c2w[:, :3, 3] *= scale
         bounds = bounds * scale
         world_from_capture = np.diag([scale, scale, scale, 1.0])
-    if recentre:
+    if recentre and layout == "forward":
         recentring = np.linalg.inv(_homogeneous(average_pose(c2w)))
         c2w = (recentring @ _homogeneous(c2w))[:, :3]
         world_from_capture = recentring @ world_from_capture
-    spiral = llff_spiral(c2w, bounds, render_frames)
+    spiral = llff_spiral(c2w, bounds, render_frames) if layout == "forward" else None
 
     def to_opencv(matrices: np.ndarray, source: str) -> torch.Tensor:
         return opengl_to_opencv(validate_c2w(torch.from_numpy(_homogeneous(matrices)), source)).float()
@@ -199,8 +219,9 @@ def load_llff(
     splits = {name: views.subset(split_rows) for name, split_rows in rows.items()}
     if held:
         splits["test"] = splits["val"]
-    splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
+    if spiral is not None:  # a 360 capture gets the orbit of the other 360 captures
+        splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
     near = float(bounds.min() * 0.9) if near is None else near
-    far = float(bounds.max()) if far is None else far
+    far = float(bounds.max()) * (1.0 if layout == "forward" else 1.5) if far is None else far
     return Scene(splits=splits, near=near, far=far, background=torch.zeros(3), source=str(root),
                  world_from_capture=torch.from_numpy(world_from_capture).float())

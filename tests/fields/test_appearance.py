@@ -1,0 +1,48 @@
+"""Per-image appearance embeddings: colour varies with the image, density does not; views that are not training
+images get the mean appearance; a checkpoint's table loads at its own size."""
+
+import pytest
+import torch
+
+from nerf_lightning.fields import AppearanceEmbedding, GridField, HashGridEncoding
+
+
+def field_with_appearance(n_images=5):
+    torch.manual_seed(0)
+    field = GridField(aabb=[-1, -1, -1, 1, 1, 1], encoding=HashGridEncoding(n_levels=3, log2_table_size=10, max_resolution=32),
+                      hidden_width=16, geometry_features=7, appearance_dim=8)
+    field.appearance.resize(n_images)
+    return field
+
+
+def test_an_appearance_embedding_changes_colour_but_not_density():
+    field = field_with_appearance()
+    points, viewdirs = torch.rand(200, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(200, 3), dim=-1)
+    first = field(points, viewdirs, torch.zeros(200, dtype=torch.long))
+    second = field(points, viewdirs, torch.full((200,), 3, dtype=torch.long))
+    torch.testing.assert_close(first["density"], second["density"], rtol=0, atol=0)
+    assert (first["rgb"] - second["rgb"]).abs().max() > 1e-3
+    # the gradient of the density never reaches the table
+    field(points, viewdirs, torch.zeros(200, dtype=torch.long))["density"].sum().backward()
+    assert field.appearance.table.grad is None or not field.appearance.table.grad.any()
+
+
+def test_views_that_are_not_training_images_get_the_mean_appearance():
+    field = field_with_appearance()
+    points, viewdirs = torch.rand(50, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
+    mean = field(points, viewdirs)["rgb"]
+    with torch.no_grad():
+        field.appearance.table[:] = field.appearance.table.mean(dim=0)  # every image the mean: the same colours
+    torch.testing.assert_close(field(points, viewdirs, torch.arange(50) % 5)["rgb"], mean)
+
+
+def test_the_table_loads_at_its_saved_size_and_refuses_an_unknown_image():
+    trained = field_with_appearance(n_images=7)
+    fresh = GridField(aabb=[-1, -1, -1, 1, 1, 1], encoding=HashGridEncoding(n_levels=3, log2_table_size=10, max_resolution=32),
+                      hidden_width=16, geometry_features=7, appearance_dim=8)
+    fresh.load_state_dict(trained.state_dict())
+    torch.testing.assert_close(fresh.appearance.table, trained.appearance.table)
+    with pytest.raises(IndexError, match="camera index 7 for an appearance table of 7"):
+        fresh.appearance(torch.tensor([7]), 1)
+    with pytest.raises(RuntimeError, match="resize"):
+        AppearanceEmbedding(4)(None, 3)

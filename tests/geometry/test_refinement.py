@@ -1,0 +1,51 @@
+"""Camera refinement: zero corrections leave the rays alone; a correction turns a ray about its camera centre and
+moves it; the penalties are the corrections' weighted squared sizes; a checkpoint's corrections load at their size."""
+
+import math
+
+import pytest
+import torch
+
+from nerf_lightning.geometry.refinement import CameraRefinement
+
+
+def test_zero_corrections_leave_the_rays_as_they_are():
+    refinement = CameraRefinement()
+    refinement.resize(4)
+    origins, directions = torch.randn(10, 3), torch.nn.functional.normalize(torch.randn(10, 3), dim=-1)
+    got_o, got_d = refinement(origins, directions, torch.arange(10) % 4)
+    torch.testing.assert_close(got_o, origins)
+    torch.testing.assert_close(got_d, directions)
+    assert all(float(value.detach()) == 0.0 for value in refinement.penalties().values())
+
+
+def test_a_correction_turns_the_rays_of_its_view_about_the_camera_and_moves_them():
+    refinement = CameraRefinement(rotation_penalty=2.0, translation_penalty=3.0)
+    refinement.resize(2)
+    with torch.no_grad():
+        refinement.deltas[1] = torch.tensor([0.0, 0.0, math.pi / 2, 0.1, 0.0, -0.2])  # view 1: 90 degrees about z
+    origins = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    directions = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    got_o, got_d = refinement(origins, directions, torch.tensor([0, 1]))
+    torch.testing.assert_close(got_o, torch.tensor([[1.0, 2.0, 3.0], [1.1, 2.0, 2.8]]))
+    torch.testing.assert_close(got_d, torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), atol=1e-6, rtol=0)
+    penalties = {name: value.detach() for name, value in refinement.penalties().items()}  # means over the 2 views
+    assert float(penalties["camera_rotation"]) == pytest.approx(2.0 * (math.pi / 2) ** 2 / 2)
+    assert float(penalties["camera_translation"]) == pytest.approx(3.0 * 0.05 / 2)
+    # the corrections learn: a loss on the moved ray reaches them
+    got_o[1].sum().backward()
+    assert refinement.deltas.grad[1, 3:].abs().sum() > 0 and refinement.deltas.grad[0].abs().sum() == 0
+
+
+def test_corrections_load_at_their_saved_size_and_an_unknown_view_is_refused():
+    trained = CameraRefinement()
+    trained.resize(5)
+    with torch.no_grad():
+        trained.deltas.normal_()
+    fresh = CameraRefinement()
+    fresh.load_state_dict(trained.state_dict())
+    torch.testing.assert_close(fresh.deltas, trained.deltas)
+    with pytest.raises(IndexError, match="camera index 5 for corrections of 5 training views"):
+        fresh(torch.zeros(1, 3), torch.ones(1, 3), torch.tensor([5]))
+    with pytest.raises(ValueError, match="lr > 0"):
+        CameraRefinement(lr=0.0)

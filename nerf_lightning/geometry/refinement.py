@@ -10,18 +10,15 @@ for the penalties. Held-out and rendered views are not corrected: nothing learnt
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
-from torch import nn
+
+from nerf_lightning.per_view import PerViewTable
 
 
-class CameraRefinement(nn.Module):
-    """SO3xR3 corrections of the training views' poses, with L2 penalties that keep them small.
-
-    The number of views is known once the data is loaded: :meth:`resize` sets it (the radiance-field module does,
-    in ``setup``); a checkpoint's corrections load at their saved size.
+class CameraRefinement(PerViewTable):
+    """SO3xR3 corrections of the training views' poses (``rows`` (V, 6): rotation vector, translation; zero at the
+    start, sized by :meth:`~nerf_lightning.per_view.PerViewTable.resize`), with L2 penalties that keep them small.
 
     Args:
         lr: the corrections' learning rate (their own optimiser group; nerfstudio: 6e-4).
@@ -30,36 +27,22 @@ class CameraRefinement(nn.Module):
     """
 
     def __init__(self, lr: float = 6e-4, rotation_penalty: float = 1e-3, translation_penalty: float = 1e-2) -> None:
-        super().__init__()
+        super().__init__(6, init="zeros")
         if lr <= 0 or rotation_penalty < 0 or translation_penalty < 0:
             raise ValueError(f"CameraRefinement needs lr > 0 and penalties >= 0, got {lr}, {rotation_penalty}, {translation_penalty}")
         self.lr, self.rotation_penalty, self.translation_penalty = lr, rotation_penalty, translation_penalty
-        self.deltas = nn.Parameter(torch.zeros(0, 6))  # (V, 6): rotation vector, translation
-
-    def resize(self, n_views: int) -> None:
-        """Zero corrections for ``n_views`` training views; kept when the size already fits."""
-        if self.deltas.shape[0] != n_views:
-            self.deltas = nn.Parameter(torch.zeros(n_views, 6, device=self.deltas.device))
 
     def forward(self, rays_o: torch.Tensor, rays_d: torch.Tensor, camera_indices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, 3) rays of training views and (N,) their views -> the corrected (N, 3) origins and unit directions."""
-        if int(camera_indices.max()) >= self.deltas.shape[0]:
-            raise IndexError(f"camera index {int(camera_indices.max())} for corrections of {self.deltas.shape[0]} training views "
-                             "(resize(n_training_views) first)")
-        deltas = self.deltas[camera_indices]  # (N, 6)
+        self.check_views(camera_indices)
+        deltas = self.rows[camera_indices]  # (N, 6)
         rotation = axis_angle_to_rotation_matrix(deltas[:, :3])  # (N, 3, 3)
         return rays_o + deltas[:, 3:], (rotation @ rays_d[..., None])[..., 0]
 
     def penalties(self) -> dict[str, torch.Tensor]:
         """``camera_rotation`` and ``camera_translation``: the weighted mean squared sizes of the corrections."""
-        return {"camera_rotation": self.rotation_penalty * self.deltas[:, :3].square().sum(-1).mean(),
-                "camera_translation": self.translation_penalty * self.deltas[:, 3:].square().sum(-1).mean()}
-
-    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
-        saved = state_dict.get(prefix + "deltas")
-        if saved is not None and saved.shape != self.deltas.shape:
-            self.deltas = nn.Parameter(torch.zeros_like(saved, device=self.deltas.device))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        return {"camera_rotation": self.rotation_penalty * self.rows[:, :3].square().sum(-1).mean(),
+                "camera_translation": self.translation_penalty * self.rows[:, 3:].square().sum(-1).mean()}
 
     def extra_repr(self) -> str:
-        return f"views={self.deltas.shape[0]}, lr={self.lr:g}, rotation_penalty={self.rotation_penalty:g}, translation_penalty={self.translation_penalty:g}"
+        return f"views={self.rows.shape[0]}, lr={self.lr:g}, rotation_penalty={self.rotation_penalty:g}, translation_penalty={self.translation_penalty:g}"

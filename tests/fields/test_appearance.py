@@ -24,7 +24,7 @@ def test_an_appearance_embedding_changes_colour_but_not_density():
     assert (first["rgb"] - second["rgb"]).abs().max() > 1e-3
     # the gradient of the density never reaches the table
     field(points, viewdirs, torch.zeros(200, dtype=torch.long))["density"].sum().backward()
-    assert field.appearance.table.grad is None or not field.appearance.table.grad.any()
+    assert field.appearance.rows.grad is None or not field.appearance.rows.grad.any()
 
 
 def test_views_that_are_not_training_images_get_the_mean_appearance():
@@ -32,7 +32,7 @@ def test_views_that_are_not_training_images_get_the_mean_appearance():
     points, viewdirs = torch.rand(50, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
     mean = field(points, viewdirs)["rgb"]
     with torch.no_grad():
-        field.appearance.table[:] = field.appearance.table.mean(dim=0)  # every image the mean: the same colours
+        field.appearance.rows[:] = field.appearance.rows.mean(dim=0)  # every image the mean: the same colours
     torch.testing.assert_close(field(points, viewdirs, torch.arange(50) % 5)["rgb"], mean)
 
 
@@ -41,8 +41,8 @@ def test_the_table_loads_at_its_saved_size_and_refuses_an_unknown_image():
     fresh = GridField(aabb=[-1, -1, -1, 1, 1, 1], encoding=HashGridEncoding(n_levels=3, log2_table_size=10, max_resolution=32),
                       hidden_width=16, geometry_features=7, appearance_dim=8)
     fresh.load_state_dict(trained.state_dict())
-    torch.testing.assert_close(fresh.appearance.table, trained.appearance.table)
-    with pytest.raises(IndexError, match="camera index 7 for an appearance table of 7"):
+    torch.testing.assert_close(fresh.appearance.rows, trained.appearance.rows)
+    with pytest.raises(IndexError, match="camera index 7 is beyond the 7 training views of this AppearanceEmbedding"):
         fresh.appearance(torch.tensor([7]), 1)
-    with pytest.raises(RuntimeError, match="resize"):
+    with pytest.raises(IndexError, match="resize"):
         AppearanceEmbedding(4)(None, 3)

@@ -23,7 +23,7 @@ def test_a_correction_turns_the_rays_of_its_view_about_the_camera_and_moves_them
     refinement = CameraRefinement(rotation_penalty=2.0, translation_penalty=3.0)
     refinement.resize(2)
     with torch.no_grad():
-        refinement.deltas[1] = torch.tensor([0.0, 0.0, math.pi / 2, 0.1, 0.0, -0.2])  # view 1: 90 degrees about z
+        refinement.rows[1] = torch.tensor([0.0, 0.0, math.pi / 2, 0.1, 0.0, -0.2])  # view 1: 90 degrees about z
     origins = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
     directions = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     got_o, got_d = refinement(origins, directions, torch.tensor([0, 1]))
@@ -34,18 +34,18 @@ def test_a_correction_turns_the_rays_of_its_view_about_the_camera_and_moves_them
     assert float(penalties["camera_translation"]) == pytest.approx(3.0 * 0.05 / 2)
     # the corrections learn: a loss on the moved ray reaches them
     got_o[1].sum().backward()
-    assert refinement.deltas.grad[1, 3:].abs().sum() > 0 and refinement.deltas.grad[0].abs().sum() == 0
+    assert refinement.rows.grad[1, 3:].abs().sum() > 0 and refinement.rows.grad[0].abs().sum() == 0
 
 
 def test_corrections_load_at_their_saved_size_and_an_unknown_view_is_refused():
     trained = CameraRefinement()
     trained.resize(5)
     with torch.no_grad():
-        trained.deltas.normal_()
+        trained.rows.normal_()
     fresh = CameraRefinement()
     fresh.load_state_dict(trained.state_dict())
-    torch.testing.assert_close(fresh.deltas, trained.deltas)
-    with pytest.raises(IndexError, match="camera index 5 for corrections of 5 training views"):
+    torch.testing.assert_close(fresh.rows, trained.rows)
+    with pytest.raises(IndexError, match="camera index 5 is beyond the 5 training views of this CameraRefinement"):
         fresh(torch.zeros(1, 3), torch.ones(1, 3), torch.tensor([5]))
     with pytest.raises(ValueError, match="lr > 0"):
         CameraRefinement(lr=0.0)

@@ -133,7 +133,7 @@ def test_appearance_and_camera_refinement_train_and_load_from_their_checkpoint(m
     assert {"train/loss_camera_rotation", "train/loss_camera_translation", "val/psnr"} <= metrics.keys()
     model, info = load_model(cfg.paths.output_dir + "/checkpoints/last.ckpt")
     n_train = len(load_run_data(info["config"]).scene.train)
-    assert model.field.appearance.table.shape == (n_train, 4) and model.camera_refinement.deltas.shape == (n_train, 6)
-    assert model.camera_refinement.deltas.abs().sum() > 0  # learnt, at their own learning rate
+    assert model.field.appearance.rows.shape == (n_train, 4) and model.camera_refinement.rows.shape == (n_train, 6)
+    assert model.camera_refinement.rows.abs().sum() > 0  # learnt, at their own learning rate
     optimizer = model.configure_optimizers()["optimizer"]
     assert [group["lr"] for group in optimizer.param_groups] == [model.make_optimizer.keywords["lr"], 6e-4]

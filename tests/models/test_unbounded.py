@@ -122,4 +122,4 @@ def test_the_360_preset_trains_on_a_capture_in_its_own_coordinates(capture, tmp_
     assert metrics["step"] == 300 and metrics["val/psnr"] > NERFACTO_PSNR_BAR_DB
     assert metrics["train/samples_per_ray"] <= 24  # the field sees the proposal sampler's 24 intervals a ray, no more
     model, _ = load_model(tmp_path / "run" / "checkpoints" / "last.ckpt")
-    assert model.field.appearance.table.shape[0] == 54 and model.renderer.gradient_scaling_distance == 1.0
+    assert model.field.appearance.rows.shape[0] == 54 and model.renderer.gradient_scaling_distance == 1.0

@@ -1,0 +1,47 @@
+"""What a model learns for each training view (an appearance embedding, a pose correction): one table row a view."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+
+class PerViewTable(nn.Module):
+    """A learnt (V, width) table ``rows``, one row a training view.
+
+    V is known once the data is loaded: :meth:`resize` sets it (the radiance-field module does, in ``setup``, before
+    the optimiser is built), and a checkpoint's table loads at the size it was saved with.
+
+    Args:
+        width: numbers a row.
+        init: ``zeros`` or ``normal`` (N(0, 1), as ``nn.Embedding``): how :meth:`resize` fills new rows.
+    """
+
+    def __init__(self, width: int, init: str = "zeros") -> None:
+        super().__init__()
+        if width < 1 or init not in ("zeros", "normal"):
+            raise ValueError(f"{type(self).__name__} needs a width >= 1 and init zeros or normal, got {width}, '{init}'")
+        self.width, self.init = width, init
+        self.rows = nn.Parameter(torch.zeros(0, width))
+
+    def resize(self, n_views: int) -> None:
+        """``n_views`` new rows; the table is kept when its size already fits."""
+        if n_views < 1:
+            raise ValueError(f"{type(self).__name__} needs at least one training view, got {n_views}")
+        if self.rows.shape[0] != n_views:
+            fill = torch.randn if self.init == "normal" else torch.zeros
+            self.rows = nn.Parameter(fill(n_views, self.width, device=self.rows.device))
+
+    def check_views(self, view_indices: torch.Tensor) -> None:
+        """IndexError naming the first index beyond the table (or a table not sized yet)."""
+        if self.rows.shape[0] == 0 or int(view_indices.max()) >= self.rows.shape[0]:
+            raise IndexError(f"camera index {int(view_indices.max())} is beyond the {self.rows.shape[0]} training views of this "
+                             f"{type(self).__name__}" + ("" if self.rows.shape[0] else ": resize(n_training_views) first"))
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        saved = state_dict.get(prefix + "rows")
+        if saved is not None and saved.shape != self.rows.shape:
+            self.rows = nn.Parameter(torch.zeros_like(saved, device=self.rows.device))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -19,9 +19,11 @@ def plot_psnr_curves(
     path: str | Path,
     title: str = "PSNR",
     xlabel: str = "step",
+    legend_below: bool = False,
 ) -> Path:
-    """One line per curve: ``{label: (steps, psnr_db)}``; curves of a single point are drawn as markers."""
-    figure, axes = plt.subplots(figsize=(7, 4.2), dpi=110)
+    """One line per curve: ``{label: (steps, psnr_db)}``; curves of a single point are drawn as markers. The legend
+    goes inside the axes where it fits best, or below them (``legend_below``), off the points."""
+    figure, axes = plt.subplots(figsize=(7, 4.2 + (0.25 * len(curves) if legend_below else 0.0)), dpi=110)
     for label, (steps, psnr) in curves.items():
         style = {"marker": "o"} if len(steps) < 30 else {}
         axes.plot(list(steps), list(psnr), label=label, linewidth=1.4, **style)
@@ -30,7 +32,10 @@ def plot_psnr_curves(
     axes.set_title(title)
     axes.grid(True, alpha=0.3)
     if curves:
-        axes.legend(fontsize=8, loc="lower right")
+        if legend_below:
+            axes.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15))
+        else:
+            axes.legend(fontsize=8, loc="best")
     figure.tight_layout()
     buffer = _io.BytesIO()
     figure.savefig(buffer, format="png")

@@ -33,6 +33,17 @@ from nerf_lightning.checkpoints import load_model  # noqa: E402
 from nerf_lightning.rendering.views import render_camera_path  # noqa: E402
 
 
+def plot_comparison(runs: list[dict], path: Path, scene: str) -> Path:
+    """Validation PSNR against training minutes of several runs of this script (their JSONs), one line each."""
+    curves = {}
+    for run in runs:
+        label = f"{run['preset']} {' '.join(o for o in run['overrides'] if o.startswith('model.'))}".strip()
+        curves[f"{label} ({run['steps']} steps, eval {run['eval']['mean']['psnr']:.2f} dB on {run['eval']['views']} views)"] = (
+            [point["seconds"] / 60 for point in run["val_curve"]], [point["psnr"] for point in run["val_curve"]])
+    return plot_psnr_curves(curves, path, title=f"{scene}: PSNR of one held-out view, 2 CPU cores", xlabel="training minutes",
+                            legend_below=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", required=True)
@@ -75,10 +86,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     if args.compare:
-        runs = [result, *(json.loads(path.read_text()) for path in args.compare)]
-        curves = {f"{run['preset']} ({run['steps']} steps, final eval {run['eval']['mean']['psnr']:.2f} dB)":
-                  ([point["seconds"] / 60 for point in run["val_curve"]], [point["psnr"] for point in run["val_curve"]]) for run in runs}
-        plot_psnr_curves(curves, args.out.with_suffix(".png"), title=f"{args.root.name}: held-out PSNR, 2 CPU cores", xlabel="training minutes")
+        plot_comparison([result, *(json.loads(path.read_text()) for path in args.compare)], args.out.with_suffix(".png"), args.root.name)
     print(json.dumps({k: v for k, v in result.items() if k not in ("val_curve", "overrides")} | {"eval": result["eval"]["mean"]}, indent=2))
 
 

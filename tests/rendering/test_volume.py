@@ -82,3 +82,14 @@ def test_importance_samples_follow_the_weights():
     even = sample_pdf(bins[:1], weights[:1], 5, perturb=False)
     # quantiles 1/4, 1/2, 3/4 of that distribution (0 and 1 fall at the ends of the near-empty outer bins)
     torch.testing.assert_close(even[0, 1:4], torch.tensor([2.0, 2 + 1 / 3, 2 + 2 / 3]), atol=1e-3, rtol=0)
+
+
+def test_padding_keeps_drawing_from_bins_the_weights_call_empty():
+    """nerfstudio's histogram padding: weight + 0.01 a bin, so bins of weight 0 keep 0.01 / (1 + 4 x 0.01) of the draws."""
+    bins = torch.linspace(0.0, 4.0, 5).expand(2000, 5)
+    weights = torch.tensor([0.0, 1.0, 0.0, 0.0]).expand(2000, 4)
+    torch.manual_seed(0)
+    samples = sample_pdf(bins, weights, 16, perturb=True, padding=0.01)
+    in_bin = torch.stack([((samples >= k) & (samples < k + 1)).float().mean() for k in range(4)])
+    empty = 0.01 / 1.04
+    torch.testing.assert_close(in_bin, torch.tensor([empty, 1.01 / 1.04, empty, empty]), atol=0.003, rtol=0)

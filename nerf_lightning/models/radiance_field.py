@@ -112,14 +112,14 @@ class RadianceFieldModule(FieldModule):
             rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
         out = self.render(rays_o, rays_d, perturb=True, camera_indices=camera_index)
         mse = F.mse_loss(out["rgb"], batch["rgb"])
-        sampler_losses = self.sampler.losses(out["samples"], out, batch["rgb"])
+        extra_losses = self.sampler.losses(out["samples"], out, batch["rgb"])
         if self.camera_refinement is not None:
-            sampler_losses.update(self.camera_refinement.penalties())
-        loss = mse + sum(sampler_losses.values())
+            extra_losses.update(self.camera_refinement.penalties())
+        loss = mse + sum(extra_losses.values())
         if not loss.requires_grad:  # no ray of the batch met an occupied cell: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
         self.log("train/samples_per_ray", float(out["n_evaluated"]) / batch["rays_o"].shape[0], on_step=True)
-        for name, value in sampler_losses.items():
+        for name, value in extra_losses.items():
             self.log(f"train/loss_{name}", value.detach(), on_step=True)
         self.log("train/loss", loss, on_step=True, on_epoch=False)
         self.log("train/psnr", mse_to_psnr(mse.detach()), on_step=True, prog_bar=True)

@@ -162,7 +162,7 @@ def load_llff(
             :mod:`~nerf_lightning.data.image_stack`); None keeps them in memory.
         layout: ``forward`` (cameras looking one way, NeRF's LLFF scenes: ``bd_factor`` and ``recentre`` apply, for
             NDC) or ``360`` (cameras all around the subject: normalised as a transforms.json capture, see the
-            module's docstring; near 0.05 and far the farthest bound by default).
+            module's docstring; near 0.05 and far 1.5 x the farthest bound by default).
     """
     if layout not in LAYOUTS:
         raise ValueError(f"data.scene.layout must be one of {LAYOUTS} (forward-facing, or all around the subject), got '{layout}'")

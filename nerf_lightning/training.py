@@ -38,6 +38,13 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
     callbacks.append(RunConfigInCheckpoint(resolved))
+    if cfg.get("viewer"):
+        from nerf_lightning.viz.viewer import LiveViewer
+
+        if cfg.model.get("_target_", "").rsplit(".", 1)[-1] != "RadianceFieldModule":
+            raise ValueError("viewer=true shows a radiance field in the browser; this run trains "
+                             f"{cfg.model.get('_target_')}: leave viewer out, or train a radiance field (experiment=lego, ...)")
+        callbacks.append(LiveViewer(cfg.viewer_host, cfg.viewer_port, output_dir, cfg.viewer_time_share))
     if cfg.trainer.get("enable_progress_bar", True):
         callbacks.append(StepProgressBar())
     loggers = [instantiate(logger) for logger in (cfg.get("logger") or {}).values()]

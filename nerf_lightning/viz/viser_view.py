@@ -8,19 +8,58 @@ import math
 import numpy as np
 import torch
 
-from nerf_lightning.data.scene import Scene
+from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.scene import Scene, Views
+from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.paths import look_at_point
 from nerf_lightning.io import to_uint8
 from nerf_lightning.viz.rays_sample import RaySample
 
 
-def _require_viser():
+def require_viser():
+    """The viser module; MissingExtraError (one line, naming the extra) when it is not installed."""
     try:
         import viser
         import viser.transforms
     except ImportError as error:
-        raise ImportError('the interactive view needs viser, an optional extra: pip install -e ".[viz]"') from error
+        raise MissingExtraError('the browser view needs viser, an optional extra: pip install -e ".[viz]"') from error
     return viser
+
+
+def scene_frame(c2w: torch.Tensor) -> tuple[torch.Tensor, float, torch.Tensor]:
+    """Where (N, 4, 4) OpenCV cameras look (3,), their mean distance from there, and their images' up (3,) (OpenCV -y)."""
+    centre = look_at_point(c2w)
+    radius = float((c2w[:, :3, 3] - centre).norm(dim=-1).mean())
+    up = torch.nn.functional.normalize(-c2w[:, :3, 1].mean(0), dim=0)
+    return centre, radius, up
+
+
+def add_training_cameras(server, views: Views, radius: float, thumbnail_height: int | None = None, highlight: int | None = None) -> list:
+    """One frustum a view under ``/cameras/``, showing its image (shrunk to ``thumbnail_height`` pixels, if given),
+    blue, or green for ``highlight``; returns the frustums' handles."""
+    viser = require_viser()
+    fov = 2.0 * math.atan(0.5 * views.height / float(views.K[0, 1, 1]))  # vertical, radians
+    handles = []
+    for index in range(len(views)):
+        image = None
+        if views.images is not None:
+            image = as_float_rgb(views.images[index])
+            if thumbnail_height is not None and views.height > thumbnail_height:
+                size = (thumbnail_height, max(1, round(views.width * thumbnail_height / views.height)))
+                image = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=size, mode="area")[0].permute(1, 2, 0)
+            image = to_uint8(image)
+        c2w = views.c2w[index].double().numpy()
+        handles.append(server.scene.add_camera_frustum(
+            f"/cameras/{index:03d}",
+            fov=fov,
+            aspect=views.width / views.height,
+            scale=0.1 * radius,
+            image=image,
+            wxyz=viser.transforms.SO3.from_matrix(c2w[:3, :3]).wxyz,
+            position=c2w[:3, 3],
+            color=(40, 90, 200) if index != highlight else (30, 160, 60),
+        ))
+    return handles
 
 
 def _segments(scene: Scene, sample: RaySample) -> np.ndarray:
@@ -31,30 +70,16 @@ def _segments(scene: Scene, sample: RaySample) -> np.ndarray:
 
 def serve_scene(scene: Scene, all_rays: RaySample, one_camera: RaySample, camera: int, host: str = "127.0.0.1", port: int = 8080):
     """Start a viser server showing the scene; returns the server (``server.stop()`` ends it)."""
-    viser = _require_viser()
+    viser = require_viser()
     server = viser.ViserServer(host=host, port=port, verbose=False)
     train = scene.train
-    centre = look_at_point(train.c2w)
-    radius = float((train.c2w[:, :3, 3] - centre).norm(dim=-1).mean())
-    up = torch.nn.functional.normalize(-train.c2w[:, :3, 1].mean(0), dim=0)  # the images' up (OpenCV -y)
+    centre, radius, up = scene_frame(train.c2w)
     server.scene.set_up_direction(up.double().numpy())
     # start outside the ring of cameras, looking at where they look
     outside = torch.nn.functional.normalize(train.c2w[0, :3, 3] - centre, dim=0) + 0.6 * up
     server.initial_camera.look_at = centre.double().numpy()
     server.initial_camera.position = (centre + 2.2 * radius * torch.nn.functional.normalize(outside, dim=0)).double().numpy()
-    fov = 2.0 * math.atan(0.5 * train.height / float(train.K[0, 1, 1]))  # vertical, radians
-    for index in range(len(train)):
-        c2w = train.c2w[index].double().numpy()
-        server.scene.add_camera_frustum(
-            f"/cameras/{index:03d}",
-            fov=fov,
-            aspect=train.width / train.height,
-            scale=0.1 * radius,
-            image=None if train.images is None else to_uint8(train.images[index]),
-            wxyz=viser.transforms.SO3.from_matrix(c2w[:3, :3]).wxyz,
-            position=c2w[:3, 3],
-            color=(40, 90, 200) if index != camera else (30, 160, 60),
-        )
+    add_training_cameras(server, train, radius, highlight=camera)
     server.scene.add_line_segments("/rays/random", points=_segments(scene, all_rays), colors=(220, 50, 40), thickness=0.004 * radius)
     server.scene.add_point_cloud("/samples/random", points=all_rays.points.reshape(-1, 3).numpy(), colors=(20, 20, 20), point_size=0.01 * radius)
     server.scene.add_line_segments(f"/rays/camera_{camera}", points=_segments(scene, one_camera), colors=(30, 160, 60), thickness=0.004 * radius)

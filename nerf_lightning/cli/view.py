@@ -1,0 +1,46 @@
+"""nerf-view: a trained radiance field in the browser (extra ``viz``), rendered from the browser's camera
+(:class:`~nerf_lightning.viz.viewer.FieldViewer`)."""
+
+from __future__ import annotations
+
+import logging
+
+import hydra
+from omegaconf import DictConfig
+
+from nerf_lightning.checkpoints import load_model, load_run_data
+from nerf_lightning.errors import report_errors
+from nerf_lightning.viz.viewer import FieldViewer, start_server
+
+log = logging.getLogger(__name__)
+
+
+def view(cfg: DictConfig) -> FieldViewer:
+    """Start the viewer of ``cfg.ckpt_path`` on ``cfg.host``:``cfg.port`` (the caller runs ``serve_forever``)."""
+    server = start_server(cfg.host, cfg.port)  # before loading anything: a missing extra or a taken port fails at once
+    try:
+        model, info = load_model(cfg.ckpt_path, cfg.device, kind="radiance_field", command="nerf-view")
+        datamodule = load_run_data(info["config"])
+        viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, cfg.output_dir,
+                             moving_frame_s=cfg.view.moving_frame_s, max_resolution=cfg.view.max_resolution)
+    except BaseException:
+        server.stop()
+        raise
+    log.info("nerf-view: open http://%s:%d in a browser (Ctrl-C to stop)", cfg.host, cfg.port)
+    return viewer
+
+
+@hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="view")
+@report_errors("nerf-view")
+def main(cfg: DictConfig) -> None:
+    viewer = view(cfg)
+    try:
+        viewer.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.server.stop()
+
+
+if __name__ == "__main__":
+    main()

@@ -27,8 +27,8 @@ from nerf_lightning.viz.viewer import browser_camera, check_port, occupied_cells
 CHROMIUM = shutil.which("chromium")
 needs_browser = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)")
 
-# a short run of the fast preset: 250 steps, a 32^3 occupancy grid; it reaches about 19 dB on the held-out views
-RUN = ["experiment=fast", "trainer.max_steps=250", "model.sampler.grid.resolution=32", "data.val_every=250",
+# a short run of the fast preset: 150 steps, a 32^3 occupancy grid
+RUN = ["experiment=fast", "trainer.max_steps=150", "model.sampler.grid.resolution=32", "data.val_every=150",
        "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
 
 
@@ -127,6 +127,35 @@ def test_viewer_true_refuses_an_image_field(tmp_path):
 
     with pytest.raises(ValueError, match="viewer=true shows a radiance field"):
         train(compose_config(["viewer=true", f"paths.output_dir={tmp_path}"]))
+
+
+def test_an_error_in_the_live_view_is_reported_once_and_training_goes_on(caplog, tmp_path):
+    pytest.importorskip("viser")
+    from types import SimpleNamespace
+
+    from nerf_lightning.viz.viewer import LiveViewer
+
+    class Broken:
+        frames_rendered, _path_request = 0, None
+        show_cells = SimpleNamespace(value=False)
+        training = SimpleNamespace(content="")
+
+        def render_next(self):
+            raise RuntimeError("the socket went away")
+
+    stopped = []
+    callback = LiveViewer(port=_free_port(), output_dir=tmp_path)
+    callback.viewer = Broken()
+    callback.server = SimpleNamespace(get_clients=lambda: {1: object()}, stop=lambda: stopped.append(True))
+    callback._started = time.perf_counter() - 100.0
+    module, trainer = torch.nn.Linear(1, 1), SimpleNamespace(callback_metrics={}, global_step=7)
+    module.train()
+    with caplog.at_level("WARNING"):
+        for _ in range(3):  # the step after the error and those after it: no exception, one warning
+            callback.on_train_batch_end(trainer, module, None, None, 0)
+    warnings = [r for r in caplog.records if "live viewer stopped" in r.getMessage()]
+    assert len(warnings) == 1 and "RuntimeError: the socket went away" in warnings[0].getMessage()
+    assert module.training and callback.viewer is None and stopped == [True]
 
 
 # -- in the browser -----------------------------------------------------------------------------------------------
@@ -241,7 +270,9 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
 
         viewer.path_frames.value, viewer.path_scale.value = 4, 0.25
         page.get_by_role("button", name="Render to GIF").click()
-        _wait(lambda: list((tmp_path / "renders").glob("*_orbit/rgb.gif")), seconds=120, what="the orbit GIF")
+        _wait(lambda: "wrote" in viewer.path_status.content, seconds=120, what="the orbit GIF")
+        gifs = list((tmp_path / "renders").glob("*_orbit/rgb.gif"))
+        assert len(gifs) == 1 and viewer.path_status.content == f"wrote {gifs[0]}"
     finally:
         viewer.stop()
         viewer.server.stop()

@@ -466,6 +466,7 @@ class LiveViewer(Callback):
         self.server = None
         self.rendering_seconds = 0.0
         self._started: float | None = None
+        self._cells_drawn_at = 0.0
 
     def setup(self, trainer, pl_module, stage: str) -> None:
         if stage != "fit" or not trainer.is_global_zero or self.server is not None:
@@ -486,12 +487,15 @@ class LiveViewer(Callback):
         elapsed = time.perf_counter() - self._started
         if self.rendering_seconds > self.time_share * elapsed:
             return
+        if not self.server.get_clients() and self.viewer._path_request is None:
+            return
         started = time.perf_counter()
         was_training = pl_module.training
         try:
             pl_module.eval()
-            if not self.server.get_clients() and self.viewer._path_request is None:
-                return
+            if self.viewer.show_cells.value and time.monotonic() - self._cells_drawn_at > self.options["refresh_s"] * 5:
+                self.viewer.draw_cells()  # the occupancy grid changes as the field trains
+                self._cells_drawn_at = time.monotonic()
             psnr = trainer.callback_metrics.get("train/psnr")
             self.viewer.render_next()
             self.viewer.training.content = (f"training: step {trainer.global_step}" + ("" if psnr is None else f", train PSNR {float(psnr):.2f} dB")

@@ -22,7 +22,8 @@ import torch
 
 from nerf_lightning.config import compose_config
 from nerf_lightning.metrics import mse_to_psnr
-from nerf_lightning.viz.viewer import browser_camera, check_port, occupied_cells, progressive_heights, render_frame, scene_box
+from nerf_lightning.rendering.views import render_view
+from nerf_lightning.viz.viewer import browser_camera, check_port, occupied_cells, progressive_heights, scene_box
 
 CHROMIUM = shutil.which("chromium")
 needs_browser = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)")
@@ -80,10 +81,10 @@ def test_browser_camera_reproduces_a_training_camera(procedural_scene):
 
 def test_a_frame_from_a_training_camera_looks_like_its_image(trained, procedural_scene):
     model, train = trained["model"], procedural_scene.train
-    frame = render_frame(model, train.K[3], train.c2w[3], train.height, train.width, chunk_size=4096)
+    frame = render_view(model, train.K[3], train.c2w[3], train.height, train.width, chunk_size=4096)
     target = train.images[3].float() / 255.0
     assert float(mse_to_psnr(torch.mean((frame["rgb"] - target) ** 2))) > 15.0
-    assert render_frame(model, train.K[3], train.c2w[3], train.height, train.width, chunk_size=64, abort=lambda: True) is None
+    assert render_view(model, train.K[3], train.c2w[3], train.height, train.width, chunk_size=64, abort=lambda: True) is None
 
 
 def test_scene_box_and_occupied_cells_in_the_world(trained):
@@ -136,7 +137,7 @@ def test_an_error_in_the_live_view_is_reported_once_and_training_goes_on(caplog,
     from nerf_lightning.viz.viewer import LiveViewer
 
     class Broken:
-        frames_rendered, _path_request = 0, None
+        frames_rendered, path_requested = 0, False
         show_cells = SimpleNamespace(value=False)
         training = SimpleNamespace(content="")
 
@@ -201,7 +202,7 @@ def _settled(viewer, client_id) -> bool:
     with viewer._lock:
         state = viewer._clients.get(client_id)
         return state is not None and state.camera is not None and state.rendered_version == state.version \
-            and state.level >= len(viewer._heights(state))
+            and state.rendered_height >= viewer._heights(state)[-1]
 
 
 @needs_browser

@@ -100,9 +100,16 @@ class RadianceFieldModule(FieldModule):
         return out
 
     @torch.no_grad()
-    def render_chunked(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Evaluation render of any number of rays, ``chunk_size`` at a time: rgb, depth, accumulation."""
-        parts = [self.render(o, d) for o, d in zip(rays_o.split(self.chunk_size), rays_d.split(self.chunk_size))]
+    def render_chunked(self, rays_o: torch.Tensor, rays_d: torch.Tensor, chunk_size: int | None = None,
+                       abort: Callable[[], bool] | None = None) -> dict[str, torch.Tensor] | None:
+        """Evaluation render of any number of rays, ``chunk_size`` (default: the module's) at a time: rgb, depth,
+        accumulation; None when ``abort()`` turns true between two chunks (the viewer, when its camera moves on)."""
+        size = chunk_size or self.chunk_size
+        parts = []
+        for origins, directions in zip(rays_o.split(size), rays_d.split(size)):
+            if abort is not None and abort():
+                return None
+            parts.append(self.render(origins, directions))
         return {key: torch.cat([part[key] for part in parts]) for key in ("rgb", "depth", "accumulation")}
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -21,11 +22,15 @@ log = logging.getLogger(__name__)
 
 
 @torch.no_grad()
-def render_view(model, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int) -> dict[str, torch.Tensor]:
+def render_view(model, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int, chunk_size: int | None = None,
+                abort: Callable[[], bool] | None = None) -> dict[str, torch.Tensor] | None:
     """One pinhole view of ``model`` (a :class:`~nerf_lightning.models.RadianceFieldModule`): K (3, 3) and an OpenCV
-    c2w (4, 4) -> rgb (H, W, 3), depth (H, W), accumulation (H, W), on the CPU. Rendered on the model's device."""
+    c2w (4, 4) -> rgb (H, W, 3), depth (H, W), accumulation (H, W), on the CPU. Rendered on the model's device,
+    ``chunk_size`` rays at a time (default: the model's); None when ``abort()`` turns true between two chunks."""
     rays_o, rays_d = image_rays(K[None].to(model.device), c2w[None].to(model.device), height, width)
-    out = model.render_chunked(rays_o[0], rays_d[0])
+    out = model.render_chunked(rays_o[0], rays_d[0], chunk_size, abort)
+    if out is None:
+        return None
     return {key: value.cpu().reshape(height, width, -1).squeeze(-1) for key, value in out.items()}
 
 

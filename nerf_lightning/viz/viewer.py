@@ -30,9 +30,8 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 from nerf_lightning.data.scene import Views
-from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.io import to_uint8
-from nerf_lightning.rendering.views import depth_picture, write_path_renders
+from nerf_lightning.rendering.views import depth_picture, render_view, write_path_renders
 from nerf_lightning.viz.viser_view import add_training_cameras, require_viser, scene_frame
 
 log = logging.getLogger(__name__)
@@ -86,21 +85,6 @@ def browser_camera(wxyz: np.ndarray, position: np.ndarray, fov_y: float, aspect:
     c2w[:3, :3] = kornia.geometry.conversions.quaternion_to_rotation_matrix(quaternion / quaternion.norm())
     c2w[:3, 3] = torch.as_tensor(np.asarray(position, dtype=np.float64)).float()
     return K, c2w, height, width
-
-
-@torch.no_grad()
-def render_frame(model, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int, chunk_size: int,
-                 abort: Callable[[], bool] | None = None) -> dict[str, torch.Tensor] | None:
-    """A pinhole view of a radiance field (K (3, 3), OpenCV c2w (4, 4)) -> rgb (H, W, 3), depth (H, W), accumulation
-    (H, W) on the CPU, ``chunk_size`` rays at a time; None when ``abort()`` turns true between two chunks."""
-    rays_o, rays_d = image_rays(K[None].to(model.device), c2w[None].to(model.device), height, width)
-    parts = []
-    for origins, directions in zip(rays_o[0].split(chunk_size), rays_d[0].split(chunk_size)):
-        if abort is not None and abort():
-            return None
-        out = model.render(origins, directions)
-        parts.append({key: out[key] for key in ("rgb", "depth", "accumulation")})
-    return {key: torch.cat([part[key] for part in parts]).cpu().reshape(height, width, -1).squeeze(-1) for key in parts[0]}
 
 
 def frame_picture(model, frame: dict[str, torch.Tensor], output: str) -> np.ndarray:
@@ -166,7 +150,7 @@ class _Client:
     camera: tuple | None = None  # (wxyz, position, fov_y, aspect, image_height)
     version: int = 0
     rendered_version: int = -1
-    level: int = 0
+    rendered_height: int = 0  # of the last frame of this version: refined until it is the ladder's last
     rendered_at: float = 0.0
 
 
@@ -211,7 +195,6 @@ class FieldViewer:
     # -- the page ------------------------------------------------------------------------------------------------
 
     def _build_scene(self) -> None:
-        viser = require_viser()
         train = self.train_views
         centre, radius, up = scene_frame(train.c2w)
         self.radius = radius
@@ -223,8 +206,6 @@ class FieldViewer:
         self.frustums = add_training_cameras(self.server, train, radius, thumbnail_height=96)
         for index, frustum in enumerate(self.frustums):
             frustum.on_click(lambda event, index=index: self.look_through(event.client, index))
-        self._viser = viser
-        self.path_handle = None
         self.box_handle = None
         self.cells_handle = None
 
@@ -270,7 +251,7 @@ class FieldViewer:
             return
         positions = views.c2w[:, :3, 3].float()
         segments = torch.stack([positions[:-1], positions[1:]], dim=1).numpy()
-        self.path_handle = self.server.scene.add_line_segments("/render_path/line", points=segments, colors=(230, 140, 20),
+        self.server.scene.add_line_segments("/render_path/line", points=segments, colors=(230, 140, 20),
                                                                thickness=3.0, thickness_units="screen")
         self.server.scene.add_point_cloud("/render_path/cameras", points=positions.numpy(), colors=(230, 140, 20),
                                           point_size=0.02 * self.radius)
@@ -305,6 +286,11 @@ class FieldViewer:
             client.camera.look_at = (position + self.radius * forward).numpy()
             client.camera.up_direction = (-c2w[:3, 1]).numpy()
 
+    @property
+    def path_requested(self) -> bool:
+        """The page's Render button was pressed and that path is not rendered yet."""
+        return self._path_request is not None
+
     def request_path_render(self) -> None:
         self._path_request = (self.path.value, int(self.path_frames.value), float(self.path_scale.value))
         self.path_status.content = f"rendering the {self.path.value} path..."
@@ -326,29 +312,29 @@ class FieldViewer:
         with self._lock:
             state = self._clients.get(camera.client.client_id)
             if state is not None:
-                state.camera, state.version, state.level = snapshot, state.version + 1, 0
+                state.camera, state.version, state.rendered_height = snapshot, state.version + 1, 0
 
     def _invalidate(self) -> None:
         with self._lock:
             for state in self._clients.values():
-                state.rendered_version, state.level = -1, 0
+                state.rendered_version, state.rendered_height = -1, 0
 
-    def _next_job(self) -> tuple[int, _Client, int, int] | None:
-        """(client id, a copy of its state, its camera version, the level to render), the most urgent first: a camera
+    def _next_job(self) -> tuple[int, _Client, int, bool] | None:
+        """(client id, a copy of its state, its camera version, whether to refine), the most urgent first: a camera
         that moved, then one to refine, then (live) one due for a refresh."""
         now = time.monotonic()
         with self._lock:
             states = [(cid, s) for cid, s in self._clients.items() if s.camera is not None]
             for cid, state in states:
                 if state.rendered_version != state.version:
-                    return cid, _Client(**vars(state)), state.version, 0
+                    return cid, _Client(**vars(state)), state.version, False
             for cid, state in states:
-                if state.level > 0 and state.level < len(self._heights(state)):
-                    return cid, _Client(**vars(state)), state.version, state.level
+                if state.rendered_height < self._heights(state)[-1]:
+                    return cid, _Client(**vars(state)), state.version, True
             if self.refresh_s is not None:
                 for cid, state in states:
                     if now - state.rendered_at > self.refresh_s:
-                        return cid, _Client(**vars(state)), state.version, 0
+                        return cid, _Client(**vars(state)), state.version, False
         return None
 
     def _heights(self, state: _Client) -> list[int]:
@@ -373,10 +359,10 @@ class FieldViewer:
         job = self._next_job()
         if job is None:
             return None
-        client_id, state, version, level = job
+        client_id, state, version, refine = job
         heights = self._heights(state)
-        level = min(level, len(heights) - 1)
-        K, c2w, height, width = browser_camera(*state.camera[:4], heights[level])
+        height = next((h for h in heights if h > state.rendered_height), heights[-1]) if refine else heights[0]
+        K, c2w, height, width = browser_camera(*state.camera[:4], height)
         chunk = int(max(1024, min(getattr(self.model, "chunk_size", 4096), self.rays_per_second * self.moving_frame_s / 2)))
 
         def moved() -> bool:
@@ -385,7 +371,7 @@ class FieldViewer:
                 return current is None or current.version != version
 
         started = time.perf_counter()
-        frame = render_frame(self.model, K, c2w, height, width, chunk, abort=moved)
+        frame = render_view(self.model, K, c2w, height, width, chunk, abort=moved)
         seconds = time.perf_counter() - started
         if frame is None:  # the camera moved or the browser left: that frame is no longer wanted
             return seconds
@@ -402,8 +388,8 @@ class FieldViewer:
         with self._lock:
             current = self._clients.get(client_id)
             if current is not None and current.version == version:
-                current.rendered_version, current.level, current.rendered_at = version, level + 1, time.monotonic()
-        self.stats.content = (f"{output} {width}x{height} in {seconds:.2f} s (step {level + 1} of {len(heights)}), "
+                current.rendered_version, current.rendered_height, current.rendered_at = version, height, time.monotonic()
+        self.stats.content = (f"{output} {width}x{height} in {seconds:.2f} s (step {heights.index(height) + 1 if height in heights else len(heights)} of {len(heights)}), "
                               f"{self.rays_per_second / 1000:.0f}k rays/s")
         return seconds
 
@@ -487,7 +473,7 @@ class LiveViewer(Callback):
         elapsed = time.perf_counter() - self._started
         if self.rendering_seconds > self.time_share * elapsed:
             return
-        if not self.server.get_clients() and self.viewer._path_request is None:
+        if not self.server.get_clients() and not self.viewer.path_requested:
             return
         started = time.perf_counter()
         was_training = pl_module.training

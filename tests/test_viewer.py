@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -23,7 +24,8 @@ import torch
 from nerf_lightning.config import compose_config
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.rendering.views import render_view
-from nerf_lightning.viz.viewer import browser_camera, check_port, occupied_cells, progressive_heights, scene_box
+from nerf_lightning.viz.viewer import browser_camera, occupied_cells, progressive_heights, scene_box
+from nerf_lightning.viz.viser_view import check_port
 
 CHROMIUM = shutil.which("chromium")
 needs_browser = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)")
@@ -96,13 +98,18 @@ def test_scene_box_and_occupied_cells_in_the_world(trained):
     assert (np.abs(points) <= 1.3).all()
 
 
-def test_a_taken_port_is_named(tmp_path):
+def test_a_taken_port_is_named(tmp_path, procedural_scene):
     with socket.socket() as holder:
         holder.bind(("127.0.0.1", 0))
         holder.listen()
         port = holder.getsockname()[1]
         with pytest.raises(ValueError, match=f"port {port} on 127.0.0.1 is taken.*viewer_port=<port>"):
             check_port("127.0.0.1", port, "viewer_port")
+        if importlib.util.find_spec("viser") is not None:  # nerf-viz-cameras viz.backend=viser starts its server alike
+            from nerf_lightning.viz.viser_view import serve_scene
+
+            with pytest.raises(ValueError, match=f"port {port} on 127.0.0.1 is taken.*viz.port=<port>"):
+                serve_scene(procedural_scene, None, None, 0, port=port)
         result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.view", "ckpt_path=any.ckpt", f"port={port}"],
                                 cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2

@@ -10,7 +10,8 @@ from omegaconf import DictConfig
 
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.errors import report_errors
-from nerf_lightning.viz.viewer import FieldViewer, start_server
+from nerf_lightning.viz.viewer import FieldViewer
+from nerf_lightning.viz.viser_view import start_server
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import math
-import socket
 import threading
 import time
 from collections.abc import Callable
@@ -32,7 +31,7 @@ from lightning.pytorch.callbacks import Callback
 from nerf_lightning.data.scene import Views
 from nerf_lightning.io import to_uint8
 from nerf_lightning.rendering.views import depth_picture, render_view, write_path_renders
-from nerf_lightning.viz.viser_view import add_training_cameras, require_viser, scene_frame
+from nerf_lightning.viz.viser_view import add_training_cameras, check_port, require_viser, scene_frame, start_server
 
 log = logging.getLogger(__name__)
 
@@ -41,21 +40,6 @@ PATHS = ("orbit", "spiral", "test")
 
 
 # -- pieces that need no browser -------------------------------------------------------------------------------
-
-
-def check_port(host: str, port: int, key: str = "port") -> None:
-    """ValueError naming ``key`` when nothing can listen on ``host``:``port`` (taken by another program, or not an
-    address of this machine). viser itself would move on to the next free port without a word."""
-    if not 0 < int(port) < 65536:
-        raise ValueError(f"{key}={port} is not a TCP port: expected 1-65535")
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: a closing socket is no conflict
-        try:
-            probe.bind((host, int(port)))
-        except OSError as error:
-            taken = error.errno in (98, 48, 10048)  # EADDRINUSE on Linux, macOS, Windows
-            why = "is taken by another program (another viewer?)" if taken else f"cannot be opened ({error.strerror or error})"
-            raise ValueError(f"port {port} on {host} {why}: choose another with {key}=<port>") from error
 
 
 def progressive_heights(rays_per_second: float, moving_frame_s: float, aspect: float, max_height: int, min_height: int = 24) -> list[int]:
@@ -413,18 +397,6 @@ class FieldViewer:
 
     def stop(self) -> None:
         self._stop.set()
-
-
-def start_server(host: str, port: int, key_prefix: str = ""):
-    """A viser server on ``host``:``port``; MissingExtraError without viser, ValueError naming ``<key_prefix>port`` when
-    the port is taken."""
-    viser = require_viser()
-    check_port(host, port, f"{key_prefix}port")
-    server = viser.ViserServer(host=host, port=port, verbose=False)
-    if server.get_port() != port:  # taken between the check and the bind: viser moved on to another port
-        server.stop()
-        raise ValueError(f"port {port} on {host} is taken by another program: choose another with {key_prefix}port=<port>")
-    return server
 
 
 class LiveViewer(Callback):

@@ -4,6 +4,7 @@ showing their images, random rays between near and far, their samples, and one c
 from __future__ import annotations
 
 import math
+import socket
 
 import numpy as np
 import torch
@@ -24,6 +25,33 @@ def require_viser():
     except ImportError as error:
         raise MissingExtraError('the browser view needs viser, an optional extra: pip install -e ".[viz]"') from error
     return viser
+
+
+def check_port(host: str, port: int, key: str = "port") -> None:
+    """ValueError naming ``key`` when nothing can listen on ``host``:``port`` (taken by another program, or not an
+    address of this machine). viser itself would move on to the next free port without a word."""
+    if not 0 < int(port) < 65536:
+        raise ValueError(f"{key}={port} is not a TCP port: expected 1-65535")
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: a closing socket is no conflict
+        try:
+            probe.bind((host, int(port)))
+        except OSError as error:
+            taken = error.errno in (98, 48, 10048)  # EADDRINUSE on Linux, macOS, Windows
+            why = "is taken by another program (another viewer?)" if taken else f"cannot be opened ({error.strerror or error})"
+            raise ValueError(f"port {port} on {host} {why}: choose another with {key}=<port>") from error
+
+
+def start_server(host: str, port: int, key_prefix: str = ""):
+    """A viser server on ``host``:``port``; MissingExtraError without viser, ValueError naming ``<key_prefix>port`` when
+    the port is taken."""
+    viser = require_viser()
+    check_port(host, port, f"{key_prefix}port")
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    if server.get_port() != port:  # taken between the check and the bind: viser moved on to another port
+        server.stop()
+        raise ValueError(f"port {port} on {host} is taken by another program: choose another with {key_prefix}port=<port>")
+    return server
 
 
 def scene_frame(c2w: torch.Tensor) -> tuple[torch.Tensor, float, torch.Tensor]:
@@ -70,8 +98,7 @@ def _segments(scene: Scene, sample: RaySample) -> np.ndarray:
 
 def serve_scene(scene: Scene, all_rays: RaySample, one_camera: RaySample, camera: int, host: str = "127.0.0.1", port: int = 8080):
     """Start a viser server showing the scene; returns the server (``server.stop()`` ends it)."""
-    viser = require_viser()
-    server = viser.ViserServer(host=host, port=port, verbose=False)
+    server = start_server(host, port, "viz.")
     train = scene.train
     centre, radius, up = scene_frame(train.c2w)
     server.scene.set_up_direction(up.double().numpy())

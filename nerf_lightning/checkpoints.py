@@ -14,6 +14,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
 
 from nerf_lightning import __version__
+from nerf_lightning.config import run_dir_of  # noqa: F401 (its home was here; imported from here by earlier code)
 from nerf_lightning.devices import resolve_device
 from nerf_lightning.io import write_atomic
 
@@ -34,16 +35,6 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         buffer = io.BytesIO()
         torch.save(checkpoint, buffer)
         write_atomic(path, buffer.getvalue())
-
-
-def run_dir_of(ckpt_path: str | Path) -> Path:
-    """The run folder of a checkpoint: <run> for <run>/checkpoints/x.ckpt, else the checkpoint's folder."""
-    folder = Path(ckpt_path).expanduser().resolve().parent
-    return folder.parent if folder.name == "checkpoints" else folder
-
-
-# `${run_dir_of:${ckpt_path}}` in render.yaml, eval.yaml and export.yaml: outputs go beside the run
-OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path)), replace=True)
 
 
 # What a checkpoint's layout is, kept in its "nerf_lightning" entry. 1: nerf-lightning 0.1; 2: 0.2, where samplers and

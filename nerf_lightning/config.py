@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 from hydra import compose, initialize_config_module
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 
 def compose_config(overrides: Sequence[str] = (), config_name: str = "train") -> DictConfig:
@@ -13,6 +14,17 @@ def compose_config(overrides: Sequence[str] = (), config_name: str = "train") ->
     outside a Hydra run there is no run folder to default to."""
     with initialize_config_module(config_module="nerf_lightning.conf", version_base="1.3"):
         return compose(config_name=config_name, overrides=list(overrides))
+
+
+def run_dir_of(ckpt_path: str | Path) -> Path:
+    """The run folder of a checkpoint: <run> for <run>/checkpoints/x.ckpt, else the checkpoint's folder."""
+    folder = Path(ckpt_path).expanduser().resolve().parent
+    return folder.parent if folder.name == "checkpoints" else folder
+
+
+# `${run_dir_of:${ckpt_path}}` in render.yaml, eval.yaml, export.yaml and view.yaml: outputs go beside the run. Here,
+# where the commands find it before they load torch.
+OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path)), replace=True)
 
 
 # Keys of nerf-lightning 0.1 that 0.2 moved (samplers and the scene space became objects): old key -> (the key now, a

@@ -96,3 +96,14 @@ def test_a_key_that_0_2_moved_is_refused_with_the_key_to_use(tmp_path):
     result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.train", "experiment=fast", "model.field.n_levels=4"],
                             cwd=tmp_path, capture_output=True, text=True)
     assert result.returncode != 0 and "use model.field.encoding.n_levels" in result.stderr
+
+
+def test_the_commands_answer_a_wrong_key_before_loading_torch(tmp_path):
+    """The commands import torch and Lightning (seconds) only once the config is composed: a typo is answered at once."""
+    modules = ["train", "render", "evaluate", "export", "view", "viz_cameras", "process_data"]
+    probe = "import sys\n" + "".join(f"import nerf_lightning.cli.{name}\n" for name in modules) + "print(sorted({'torch', 'lightning'} & set(sys.modules)))"
+    result = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode == 0 and result.stdout.strip() == "[]", result.stdout + result.stderr
+    result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.render", "ckpt_path=x.ckpt", "render.sacle=2"],
+                            cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode != 0 and "render.sacle" in result.stderr

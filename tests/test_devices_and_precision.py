@@ -89,16 +89,24 @@ def test_a_training_step_of_every_preset_uses_no_float64(experiment, tiny_data, 
     assert trainer.global_step == 2 and watcher.steps == 2
 
 
-@pytest.mark.parametrize("experiment", FAST_PRESETS)
+# in CI: the hash grid (fast), the factorised grid (tensorf) and NDC (llff); the Blender and contracted presets train the
+# same fields under -m slow
+BF16_IN_CI = ("fast", "fast_blender_tensorf", "fast_llff")
+
+
+@pytest.mark.parametrize("experiment", [name if name in BF16_IN_CI else pytest.param(name, marks=pytest.mark.slow) for name in FAST_PRESETS])
 def test_the_fast_presets_learn_under_bf16_mixed_on_a_cpu(experiment, tiny_data, make_config, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     history = LossHistory()
+    # bf16 matrix products are slow on a CPU without bf16 units: steps of 0.05 (about 100 across the box, not 260) keep
+    # the run short; the NDC preset keeps its own (its loss falls least)
+    coarse = [] if experiment == "fast_llff" else ["model.sampler.step_size=0.05"]
     trainer = fit(make_config(*tiny_overrides(experiment, tiny_data), "trainer.precision=bf16-mixed", "trainer.max_steps=50",
-                              "data.val_every=null", "data.batch_size=256"), history)
+                              "data.val_every=null", "data.batch_size=256", *coarse), history)
     assert trainer.global_step == 50 and len(history.losses) == 50
     losses = torch.tensor(history.losses)
     assert bool(torch.isfinite(losses).all())
-    assert losses[-10:].mean() < 0.9 * losses[:10].mean()  # the colour loss falls (by 18 to 45% here in 50 steps)
+    assert losses[-10:].mean() < 0.9 * losses[:10].mean()  # the colour loss falls (by 18 to 84% here in 50 steps)
 
 
 def test_the_device_key_names_what_it_expects():

@@ -6,11 +6,14 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
 from nerf_lightning.errors import ensure_writable, report_errors
-from nerf_lightning.evaluation import evaluate_checkpoint
 
 
 def evaluate(cfg: DictConfig) -> dict:
+    # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
+    from nerf_lightning.evaluation import evaluate_checkpoint
+
     ensure_writable(cfg.output_dir, "output_dir")
     return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views, cfg.device)
 

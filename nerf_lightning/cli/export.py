@@ -9,14 +9,17 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from nerf_lightning.checkpoints import load_model
+import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
 from nerf_lightning.errors import ensure_writable, report_errors
-from nerf_lightning.mesh import FORMATS, mesh_radiance_field, write_mesh
 
 log = logging.getLogger(__name__)
 
 
 def export(cfg: DictConfig) -> Path:
+    # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
+    from nerf_lightning.checkpoints import load_model
+    from nerf_lightning.mesh import FORMATS, mesh_radiance_field, write_mesh
+
     if cfg.format not in FORMATS:
         raise ValueError(f"export format must be one of {', '.join(FORMATS)}, got '{cfg.format}'")
     model, _ = load_model(cfg.ckpt_path, cfg.device, kind="radiance_field", command="nerf-export")

@@ -6,11 +6,13 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from nerf_lightning.data.capture import format_report, process_capture
 from nerf_lightning.errors import report_errors
 
 
 def process(cfg: DictConfig) -> dict:
+    # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
+    from nerf_lightning.data.capture import process_capture
+
     return process_capture(cfg.input, cfg.output, frames=cfg.frames, matcher=cfg.matcher, mapper=cfg.mapper, camera_model=cfg.camera_model,
                            single_camera=cfg.single_camera, max_size=cfg.max_size, max_features=cfg.max_features,
                            downscales=list(cfg.downscales), min_registered=cfg.min_registered, seed=cfg.seed,
@@ -20,6 +22,8 @@ def process(cfg: DictConfig) -> dict:
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="process_data")
 @report_errors("nerf-process-data")
 def main(cfg: DictConfig) -> None:
+    from nerf_lightning.data.capture import format_report
+
     print(format_report(process(cfg)))
 
 

@@ -9,15 +9,18 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from nerf_lightning.checkpoints import load_model
+import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
 from nerf_lightning.errors import ensure_writable, report_errors
-from nerf_lightning.io import write_png
-from nerf_lightning.rendering.views import render_camera_path
 
 log = logging.getLogger(__name__)
 
 
 def render(cfg: DictConfig) -> list[Path]:
+    # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
+    from nerf_lightning.checkpoints import load_model
+    from nerf_lightning.io import write_png
+    from nerf_lightning.rendering.views import render_camera_path
+
     model, info = load_model(cfg.ckpt_path, cfg.device)
     output_dir = ensure_writable(cfg.output_dir, "output_dir")
     scale = float(cfg.render.scale)

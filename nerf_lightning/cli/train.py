@@ -10,12 +10,14 @@ from omegaconf import DictConfig
 
 from nerf_lightning.config import renamed_key_message
 from nerf_lightning.errors import fail, report_errors
-from nerf_lightning.training import train
 
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="train")
 @report_errors("nerf-train")
 def run(cfg: DictConfig) -> float | None:
+    # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
+    from nerf_lightning.training import train
+
     metrics = train(cfg)
     folder = Path(cfg.paths.output_dir)
     shown = ", ".join(f"{key} {metrics[key]:.2f}" for key in ("val/psnr", "val/ssim") if key in metrics)

@@ -4,20 +4,27 @@
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import hydra
 from omegaconf import DictConfig
 
-from nerf_lightning.checkpoints import load_model, load_run_data
+import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
 from nerf_lightning.errors import report_errors
-from nerf_lightning.viz.viewer import FieldViewer
-from nerf_lightning.viz.viser_view import start_server
+
+if TYPE_CHECKING:
+    from nerf_lightning.viz.viewer import FieldViewer
 
 log = logging.getLogger(__name__)
 
 
 def view(cfg: DictConfig) -> FieldViewer:
     """Start the viewer of ``cfg.ckpt_path`` on ``cfg.host``:``cfg.port`` (the caller runs ``serve_forever``)."""
+    # imported here, not at the top: a wrong key is answered before torch loads (seconds)
+    from nerf_lightning.checkpoints import load_model, load_run_data
+    from nerf_lightning.viz.viewer import FieldViewer
+    from nerf_lightning.viz.viser_view import start_server
+
     server = start_server(cfg.host, cfg.port)  # before loading anything: a missing extra or a taken port fails at once
     try:
         model, info = load_model(cfg.ckpt_path, cfg.device, kind="radiance_field", command="nerf-view")

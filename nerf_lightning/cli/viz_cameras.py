@@ -10,15 +10,17 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from nerf_lightning.devices import resolve_device
 from nerf_lightning.errors import report_errors
-from nerf_lightning.viz.plot import plot_cameras_and_rays
-from nerf_lightning.viz.rays_sample import draw_rays
 
 log = logging.getLogger(__name__)
 
 
 def visualise(cfg: DictConfig) -> Path | object:
+    # imported here, not at the top: a wrong key is answered before torch loads (seconds)
+    from nerf_lightning.devices import resolve_device
+    from nerf_lightning.viz.plot import plot_cameras_and_rays
+    from nerf_lightning.viz.rays_sample import draw_rays
+
     resolve_device(cfg.device)  # validated like the other commands' key; a few dozen rays are drawn on the CPU
     datamodule = instantiate(cfg.data)
     datamodule.setup()

@@ -20,8 +20,8 @@ from torch import nn
 
 PRIMES = (1, 2654435761, 805459861)
 
-# (8, 3) the corners of a cell, as 0/1 offsets
-CORNERS = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=torch.long)
+# (2,) a cell's lower and upper vertex along an axis
+CORNER_STEPS = torch.tensor([0, 1], dtype=torch.long)
 
 
 def level_resolutions(n_levels: int, base_resolution: int, max_resolution: int) -> list[int]:
@@ -66,6 +66,9 @@ class HashGridEncoding(nn.Module):
         sizes = [min((n + 1) ** 3, self.table_size) for n in resolutions]
         self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.long), persistent=False)
         self.register_buffer("hashed", torch.tensor([(n + 1) ** 3 > self.table_size for n in resolutions]), persistent=False)
+        # the levels whose vertices all fit their table come first (resolutions grow): they index densely
+        self.n_dense = int((~self.hashed).sum())
+        self.dense_rows = sum(sizes[: self.n_dense])  # where the hashed levels' rows start
         self.register_buffer("offsets", torch.tensor([0, *sizes[:-1]], dtype=torch.long).cumsum(0), persistent=False)
         # (sum of the levels' table sizes, F): every level's vertex features, one level after another
         self.table = nn.Parameter(torch.empty(sum(sizes), features_per_level).uniform_(-init_scale, init_scale))
@@ -74,12 +77,23 @@ class HashGridEncoding(nn.Module):
     def out_dim(self) -> int:
         return self.n_levels * self.features_per_level
 
-    def vertex_rows(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """(M, L) integer vertex coordinates, level by level -> (M, L) rows of ``table``."""
-        side = self.resolutions + 1  # (L,)
-        dense = x + y * side + z * side * side
-        hashed = torch.bitwise_xor(torch.bitwise_xor(x * PRIMES[0], y * PRIMES[1]), z * PRIMES[2]) & (self.table_size - 1)
-        return torch.where(self.hashed, hashed, dense) + self.offsets
+    def corner_rows(self, lower: torch.Tensor, hashed: bool) -> torch.Tensor:
+        """(M, n, 3) integer lower corners of the points' cells at the dense levels (``hashed=False``, the first
+        ``n_dense``) or the hashed ones (the rest) -> (M, n, 8) rows of those levels' part of ``table`` (counted from
+        the part's first row) of the cells' 8 vertices, corner ``4 dx + 2 dy + dz``. Each axis's two coordinates are
+        worked out once, (M, n, 2), and combined by broadcasting."""
+        steps = CORNER_STEPS.to(lower.device)
+        if hashed:  # a hashed level's table is T rows from the part's start at level * T: its offset is an OR (= XOR)
+            mask = self.table_size - 1
+            x, y, z = (((lower[..., axis, None] + steps) * PRIMES[axis]) & mask for axis in range(3))
+            x = x ^ self.offsets[self.n_dense:, None] - self.offsets[self.n_dense]
+            rows = (x[..., :, None] ^ y[..., None, :])[..., None] ^ z[..., None, None, :]
+        else:
+            side = (self.resolutions[: self.n_dense] + 1)[:, None]  # (n, 1)
+            x, y, z = (lower[..., axis, None] + steps for axis in range(3))  # (M, n, 2) each
+            x = x + self.offsets[: self.n_dense, None]
+            rows = (x[..., :, None] + y[..., None, :] * side[..., None])[..., None] + z[..., None, None, :] * (side * side)[..., None, None]
+        return rows.reshape(*lower.shape[:2], 8)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) points in [0, 1] -> (..., L * F)"""
@@ -88,15 +102,19 @@ class HashGridEncoding(nn.Module):
         lead = points.shape[:-1]
         points = points.reshape(-1, 3).clamp(0.0, 1.0)
         scaled = points[:, None, :] * self.resolutions[:, None].to(points)  # (M, L, 3) in cell units
-        lower = scaled.floor().long().clamp(max=(self.resolutions - 1)[:, None])  # the last cell keeps x = 1 inside
+        lower = torch.minimum(scaled.floor(), (self.resolutions - 1)[:, None].to(points))  # the last cell keeps x = 1 inside
         fraction = scaled - lower  # (M, L, 3) in [0, 1]
-        (x, y, z), (fx, fy, fz) = lower.unbind(-1), fraction.unbind(-1)
-        rows, weights = [], []
-        for cx, cy, cz in CORNERS.tolist():  # the cell's 8 vertices and their trilinear weights
-            rows.append(self.vertex_rows(x + cx, y + cy, z + cz))
-            weights.append((fx if cx else 1.0 - fx) * (fy if cy else 1.0 - fy) * (fz if cz else 1.0 - fz))
-        rows_all, weights_all = torch.stack(rows, dim=-1), torch.stack(weights, dim=-1)  # (M, L, 8)
-        # one gather for every level and corner, so backward scatters into the table once
-        corner_features = torch.index_select(self.table, 0, rows_all.reshape(-1)).view(*rows_all.shape, self.features_per_level)
-        features = (weights_all[..., None] * corner_features).sum(dim=-2)  # (M, L, F)
-        return features.reshape(*lead, self.out_dim)
+        # trilinear weights, corner 4 dx + 2 dy + dz: the product of (1 - f, f) along each axis
+        w = torch.stack([1.0 - fraction, fraction], dim=-1)  # (M, L, 3, 2)
+        weights = (w[:, :, 0, :, None, None] * w[:, :, 1, None, :, None] * w[:, :, 2, None, None, :]).reshape(*w.shape[:2], 1, 8)
+        lower = lower.long()
+        features = []
+        for levels, hashed in ((slice(0, self.n_dense), False), (slice(self.n_dense, self.n_levels), True)):
+            if levels.start == levels.stop:
+                continue
+            rows = self.corner_rows(lower[:, levels], hashed)  # (M, n, 8)
+            table = self.table[self.dense_rows:] if hashed else self.table  # the part the rows count from
+            corner_features = torch.index_select(table, 0, rows.reshape(-1)).view(*rows.shape, self.features_per_level)
+            with torch.autocast(points.device.type, enabled=False):  # the interpolation stays float32 under mixed precision
+                features.append(torch.matmul(weights[:, levels], corner_features).squeeze(-2))  # (M, n, F)
+        return torch.cat(features, dim=1).reshape(*lead, self.out_dim)

@@ -1,18 +1,30 @@
-"""Seconds to render held-out view 0 of a checkpoint's scene at several ``model.chunk_size`` values, each twice.
+"""Seconds to render held-out view 0 of a checkpoint's scene at several ``model.chunk_size`` values, each twice;
+``--scale`` renders it smaller (K scaled alike) and also gives the time a full-size frame would take at that rate.
 
     .venv/bin/python scripts/time_render_chunks.py <run>/checkpoints/last.ckpt 8192 2048
+    .venv/bin/python scripts/time_render_chunks.py <run>/checkpoints/last.ckpt 2048 --scale 0.25
 """
 
-import sys
+import argparse
 import time
 
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.rendering.views import render_view
 
-model, info = load_model(sys.argv[1])
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("ckpt")
+parser.add_argument("chunks", type=int, nargs="+")
+parser.add_argument("--scale", type=float, default=1.0)
+args = parser.parse_args()
+model, info = load_model(args.ckpt)
 views = load_run_data(info["config"]).scene.held_out("test")
-for chunk in [int(value) for value in sys.argv[2:]] * 2:
+K = views.K[0].clone()
+K[:2] *= args.scale
+height, width = round(views.height * args.scale), round(views.width * args.scale)
+for chunk in args.chunks * 2:
     model.chunk_size = chunk
     started = time.perf_counter()
-    render_view(model, views.K[0], views.c2w[0], views.height, views.width)
-    print(f"chunk_size={chunk}: {time.perf_counter() - started:.1f} s for {views.width}x{views.height}", flush=True)
+    render_view(model, K, views.c2w[0], height, width)
+    seconds = time.perf_counter() - started
+    full = f" ({seconds / args.scale**2:.0f} s a {views.width}x{views.height} frame at this rate)" if args.scale != 1.0 else ""
+    print(f"chunk_size={chunk}: {seconds:.1f} s for {width}x{height}{full}", flush=True)

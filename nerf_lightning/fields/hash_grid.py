@@ -78,22 +78,21 @@ class HashGridEncoding(nn.Module):
         return self.n_levels * self.features_per_level
 
     def corner_rows(self, lower: torch.Tensor, hashed: bool) -> torch.Tensor:
-        """(M, n, 3) integer lower corners of the points' cells at the dense levels (``hashed=False``, the first
-        ``n_dense``) or the hashed ones (the rest) -> (M, n, 8) rows of those levels' part of ``table`` (counted from
-        the part's first row) of the cells' 8 vertices, corner ``4 dx + 2 dy + dz``. Each axis's two coordinates are
-        worked out once, (M, n, 2), and combined by broadcasting."""
-        steps = CORNER_STEPS.to(lower.device)
+        """(3, n, M) integer lower corners of M points' cells, axis by axis, at the dense levels (``hashed=False``, the
+        first ``n_dense``) or the hashed ones (the rest) -> (2, 2, 2, n, M) rows of those levels' part of ``table``
+        (counted from the part's first row) of the cells' vertices, indexed by (dx, dy, dz). Each axis's two
+        coordinates, (2, n, M), are combined by broadcasting over the leading axes, the points' axis innermost (what
+        a CPU's vector units need)."""
+        steps = CORNER_STEPS.to(lower.device)[:, None, None]  # (2, 1, 1)
         if hashed:  # a hashed level's table is T rows from the part's start at level * T: its offset is an OR (= XOR)
             mask = self.table_size - 1
-            x, y, z = (((lower[..., axis, None] + steps) * PRIMES[axis]) & mask for axis in range(3))
-            x = x ^ self.offsets[self.n_dense:, None] - self.offsets[self.n_dense]
-            rows = (x[..., :, None] ^ y[..., None, :])[..., None] ^ z[..., None, None, :]
-        else:
-            side = (self.resolutions[: self.n_dense] + 1)[:, None]  # (n, 1)
-            x, y, z = (lower[..., axis, None] + steps for axis in range(3))  # (M, n, 2) each
-            x = x + self.offsets[: self.n_dense, None]
-            rows = (x[..., :, None] + y[..., None, :] * side[..., None])[..., None] + z[..., None, None, :] * (side * side)[..., None, None]
-        return rows.reshape(*lower.shape[:2], 8)
+            x, y, z = (((lower[axis] + steps) * PRIMES[axis]) & mask for axis in range(3))  # (2, n, M) each
+            x = x ^ (self.offsets[self.n_dense:] - self.offsets[self.n_dense])[:, None]
+            return (x[:, None] ^ y[None, :])[:, :, None] ^ z[None, None, :]
+        side = (self.resolutions[: self.n_dense] + 1)[:, None]  # (n, 1)
+        x, y, z = (lower[axis] + steps for axis in range(3))  # (2, n, M) each
+        x = x + self.offsets[: self.n_dense, None]
+        return (x[:, None] + y[None, :] * side)[:, :, None] + z[None, None, :] * (side * side)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) points in [0, 1] -> (..., L * F)"""
@@ -101,20 +100,21 @@ class HashGridEncoding(nn.Module):
             raise ValueError(f"HashGridEncoding expected (..., 3) points, got {tuple(points.shape)}")
         lead = points.shape[:-1]
         points = points.reshape(-1, 3).clamp(0.0, 1.0)
-        scaled = points[:, None, :] * self.resolutions[:, None].to(points)  # (M, L, 3) in cell units
-        lower = torch.minimum(scaled.floor(), (self.resolutions - 1)[:, None].to(points))  # the last cell keeps x = 1 inside
-        fraction = scaled - lower  # (M, L, 3) in [0, 1]
-        # trilinear weights, corner 4 dx + 2 dy + dz: the product of (1 - f, f) along each axis
-        w = torch.stack([1.0 - fraction, fraction], dim=-1)  # (M, L, 3, 2)
-        weights = (w[:, :, 0, :, None, None] * w[:, :, 1, None, :, None] * w[:, :, 2, None, None, :]).reshape(*w.shape[:2], 1, 8)
+        resolutions = self.resolutions.to(points)[:, None]  # (L, 1)
+        scaled = points.t()[:, None, :] * resolutions  # (3, L, M) in cell units, the points innermost
+        lower = torch.minimum(scaled.floor(), resolutions - 1.0)  # the last cell keeps x = 1 inside
+        fraction = scaled - lower  # (3, L, M) in [0, 1]
+        # trilinear weights (2, 2, 2, L, M), indexed by (dx, dy, dz): the product of (1 - f, f) along each axis
+        w = torch.stack([1.0 - fraction, fraction])  # (2, 3, L, M)
+        weights = w[:, None, None, 0] * w[None, :, None, 1] * w[None, None, :, 2]
         lower = lower.long()
         features = []
         for levels, hashed in ((slice(0, self.n_dense), False), (slice(self.n_dense, self.n_levels), True)):
             if levels.start == levels.stop:
                 continue
-            rows = self.corner_rows(lower[:, levels], hashed)  # (M, n, 8)
+            rows = self.corner_rows(lower[:, levels], hashed)  # (2, 2, 2, n, M)
             table = self.table[self.dense_rows:] if hashed else self.table  # the part the rows count from
             corner_features = torch.index_select(table, 0, rows.reshape(-1)).view(*rows.shape, self.features_per_level)
-            with torch.autocast(points.device.type, enabled=False):  # the interpolation stays float32 under mixed precision
-                features.append(torch.matmul(weights[:, levels], corner_features).squeeze(-2))  # (M, n, F)
-        return torch.cat(features, dim=1).reshape(*lead, self.out_dim)
+            features.append((weights[..., levels, :, None] * corner_features).sum(dim=(0, 1, 2)))  # (n, M, F)
+        features = torch.cat(features) if len(features) > 1 else features[0]  # (L, M, F)
+        return features.transpose(0, 1).reshape(*lead, self.out_dim)

@@ -1,0 +1,61 @@
+"""Milliseconds of the hash-grid encoding (nerf_lightning.fields.HashGridEncoding) on the CPU: the no-grad forward
+(evaluation, the viewer) and forward + backward (a training step's share) at the sizes the presets use, the best of 7
+after a warm-up, fixed seed. Run it from another checkout (PYTHONPATH=<tree>) to compare two versions of the code.
+
+    .venv/bin/python scripts/bench_hash_grid.py --out docs/bench/hash_grid_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+import nerf_lightning.fields.hash_grid as hash_grid
+
+# (name, encoding options, points): a proposal network's grid on a 2048-ray chunk of 64 samples, the CPU presets'
+# field on 2048 rays of 24 samples, and the GPU presets' 16 levels
+SIZES = [("proposal_5_levels", dict(n_levels=5, log2_table_size=17, base_resolution=16, max_resolution=128), 131072),
+         ("field_8_levels", dict(n_levels=8, log2_table_size=19, max_resolution=1024), 49152),
+         ("field_16_levels", dict(n_levels=16, log2_table_size=19, max_resolution=2048), 100_000)]
+
+
+def best_ms(function, repeats: int = 7) -> float:
+    function()
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - started)
+    return round(min(times) * 1000.0, 1)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    torch.manual_seed(0)
+    result = {"code": hash_grid.__file__, "torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(), "sizes": {}}
+    for name, options, n_points in SIZES:
+        encoding, points = hash_grid.HashGridEncoding(**options), torch.rand(n_points, 3)
+
+        def forward_no_grad():
+            with torch.no_grad():
+                encoding(points)
+
+        def forward_backward():
+            encoding.table.grad = None
+            encoding(points).square().sum().backward()
+
+        result["sizes"][name] = {"options": options, "points": n_points, "no_grad_ms": best_ms(forward_no_grad), "forward_backward_ms": best_ms(forward_backward)}
+        print(name, result["sizes"][name], flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

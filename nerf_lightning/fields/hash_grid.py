@@ -20,9 +20,6 @@ from torch import nn
 
 PRIMES = (1, 2654435761, 805459861)
 
-# (2,) a cell's lower and upper vertex along an axis
-CORNER_STEPS = torch.tensor([0, 1], dtype=torch.long)
-
 
 def level_resolutions(n_levels: int, base_resolution: int, max_resolution: int) -> list[int]:
     """Cells a side N_l of each level: a geometric series from ``base_resolution`` to ``max_resolution``."""
@@ -70,6 +67,8 @@ class HashGridEncoding(nn.Module):
         self.n_dense = int((~self.hashed).sum())
         self.dense_rows = sum(sizes[: self.n_dense])  # where the hashed levels' rows start
         self.register_buffer("offsets", torch.tensor([0, *sizes[:-1]], dtype=torch.long).cumsum(0), persistent=False)
+        # (2, 1, 1): a cell's lower and upper vertex along an axis, on the encoding's device
+        self.register_buffer("corner_steps", torch.tensor([0, 1], dtype=torch.long)[:, None, None], persistent=False)
         # (sum of the levels' table sizes, F): every level's vertex features, one level after another
         self.table = nn.Parameter(torch.empty(sum(sizes), features_per_level).uniform_(-init_scale, init_scale))
 
@@ -83,7 +82,7 @@ class HashGridEncoding(nn.Module):
         (counted from the part's first row) of the cells' vertices, indexed by (dx, dy, dz). Each axis's two
         coordinates, (2, n, M), are combined by broadcasting over the leading axes, the points' axis innermost (what
         a CPU's vector units need)."""
-        steps = CORNER_STEPS.to(lower.device)[:, None, None]  # (2, 1, 1)
+        steps = self.corner_steps
         if hashed:  # a hashed level's table is T rows from the part's start at level * T: its offset is an OR (= XOR)
             mask = self.table_size - 1
             x, y, z = (((lower[axis] + steps) * PRIMES[axis]) & mask for axis in range(3))  # (2, n, M) each

@@ -18,13 +18,11 @@ parser.add_argument("--scale", type=float, default=1.0)
 args = parser.parse_args()
 model, info = load_model(args.ckpt)
 views = load_run_data(info["config"]).scene.held_out("test")
-K = views.K[0].clone()
-K[:2] *= args.scale
-height, width = round(views.height * args.scale), round(views.width * args.scale)
+rendered = views.scaled(args.scale)
 for chunk in args.chunks * 2:
     model.chunk_size = chunk
     started = time.perf_counter()
-    render_view(model, K, views.c2w[0], height, width)
+    render_view(model, rendered.K[0], rendered.c2w[0], rendered.height, rendered.width)
     seconds = time.perf_counter() - started
     full = f" ({seconds / args.scale**2:.0f} s a {views.width}x{views.height} frame at this rate)" if args.scale != 1.0 else ""
-    print(f"chunk_size={chunk}: {seconds:.1f} s for {width}x{height}{full}", flush=True)
+    print(f"chunk_size={chunk}: {seconds:.1f} s for {rendered.width}x{rendered.height}{full}", flush=True)

@@ -166,6 +166,33 @@ def test_an_error_in_the_live_view_is_reported_once_and_training_goes_on(caplog,
     assert module.training and callback.viewer is None and stopped == [True]
 
 
+def test_the_live_view_runs_the_proposal_networks_unbaked_and_leaves_the_setting_as_it_was(tmp_path):
+    pytest.importorskip("viser")
+    from types import SimpleNamespace
+
+    from nerf_lightning.viz.viewer import LiveViewer
+
+    module = torch.nn.Module()
+    module.sampler = SimpleNamespace(bake_resolution=128)
+    seen = []
+
+    class Recorder:
+        frames_rendered, path_requested = 0, False
+        show_cells = SimpleNamespace(value=False)
+        training = SimpleNamespace(content="")
+
+        def render_next(self):  # the weights change at every step: baking them for one frame would cost more than it saves
+            seen.append((module.sampler.bake_resolution, module.training))
+
+    callback = LiveViewer(port=_free_port(), output_dir=tmp_path)
+    callback.viewer = Recorder()
+    callback.server = SimpleNamespace(get_clients=lambda: {1: object()}, stop=lambda: None)
+    callback._started = time.perf_counter() - 100.0
+    callback.on_train_batch_end(SimpleNamespace(callback_metrics={}, global_step=3), module, None, None, 0)
+    assert seen == [(None, False)]
+    assert module.sampler.bake_resolution == 128 and module.training
+
+
 # -- in the browser -----------------------------------------------------------------------------------------------
 
 

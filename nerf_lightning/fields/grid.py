@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from nerf_lightning.fields.appearance import AppearanceEmbedding
@@ -69,6 +70,46 @@ class DensityField(nn.Module):
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) field-space points -> (...,) densities >= 0, 0 outside the box."""
         return grid_density(points, self.aabb, self.encoding, self.mlp)[0]
+
+    @torch.no_grad()
+    def bake(self, resolution: int, chunk_size: int = 2**17) -> BakedDensity:
+        """This field's log-density at the (R + 1)^3 vertices of a grid of ``resolution`` cells a side over its box,
+        as a :class:`BakedDensity` (evaluation only: it does not learn). ``chunk_size`` vertices at a time."""
+        ticks = torch.linspace(0.0, 1.0, resolution + 1, device=self.aabb.device)
+        y, x = torch.meshgrid(ticks, ticks, indexing="ij")
+        plane = torch.stack([x, y], dim=-1).reshape(-1, 2)  # one z slice's vertices, x fastest
+        slices = max(1, chunk_size // plane.shape[0])
+        log_density = []
+        for z in ticks.split(slices):  # (D, H, W) = (z, y, x), as grid_sample reads it
+            unit = torch.cat([plane.repeat(len(z), 1), z.repeat_interleave(plane.shape[0])[:, None]], dim=-1)
+            log_density.append(self.mlp(self.encoding(unit))[..., 0].float())
+        return BakedDensity(self.aabb, torch.cat(log_density).reshape(1, 1, *(len(ticks),) * 3))
+
+
+class BakedDensity(nn.Module):
+    """A density field read off a grid: the log-density at the vertices of a (D, H, W) = (z, y, x) grid over the
+    box ``aabb``, trilinearly interpolated (``grid_sample``) and exponentiated, 0 outside the box. What
+    :meth:`DensityField.bake` makes of a proposal network for evaluation: one interpolation a point instead of a
+    hash encoding and an MLP, at the price of the network's detail between the vertices.
+
+    Args:
+        aabb: the box in the field space, (6,); log_density: (1, 1, D, H, W).
+    """
+
+    def __init__(self, aabb: torch.Tensor, log_density: torch.Tensor) -> None:
+        super().__init__()
+        if log_density.dim() != 5 or log_density.shape[:2] != (1, 1):
+            raise ValueError(f"BakedDensity expected a (1, 1, D, H, W) log-density grid, got {tuple(log_density.shape)}")
+        self.register_buffer("aabb", aabb.detach().clone())
+        self.register_buffer("log_density", log_density)
+
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) field-space points -> (...,) densities >= 0, 0 outside the box."""
+        unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
+        grid = (unit.reshape(1, 1, 1, -1, 3) * 2.0 - 1.0).to(self.log_density.dtype)
+        log_density = F.grid_sample(self.log_density, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
+        return torch.exp(log_density.reshape(points.shape[:-1])) * inside
 
 
 class GridField(nn.Module):

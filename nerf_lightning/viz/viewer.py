@@ -449,8 +449,12 @@ class LiveViewer(Callback):
             return
         started = time.perf_counter()
         was_training = pl_module.training
+        sampler = getattr(pl_module, "sampler", None)
+        bake_resolution = getattr(sampler, "bake_resolution", None)
         try:
             pl_module.eval()
+            if bake_resolution is not None:  # the proposal networks change every step: a bake would not outlive the frame
+                sampler.bake_resolution = None
             if self.viewer.show_cells.value and time.monotonic() - self._cells_drawn_at > self.options["refresh_s"] * 5:
                 self.viewer.draw_cells()  # the occupancy grid changes as the field trains
                 self._cells_drawn_at = time.monotonic()
@@ -463,6 +467,8 @@ class LiveViewer(Callback):
             self.close()
         finally:
             pl_module.train(was_training)
+            if bake_resolution is not None:
+                sampler.bake_resolution = bake_resolution
             self.rendering_seconds += time.perf_counter() - started
 
     def close(self) -> None:

@@ -172,6 +172,40 @@ def test_the_proposal_sampler_crowds_the_field_samples_where_the_proposals_see_d
     assert ((flat_mids > 3.6) & (flat_mids < 4.0)).float().mean() < 0.3
 
 
+def test_a_baked_proposal_network_matches_the_network_at_its_vertices_and_is_used_in_evaluation_only():
+    torch.manual_seed(0)
+    network = small_density_field()
+    with torch.no_grad():
+        network.encoding.table.uniform_(-1.0, 1.0)  # a density that varies over the box
+    baked = network.bake(resolution=8)
+    vertices = torch.tensor([[0, 0, 0], [8, 0, 0], [0, 8, 0], [0, 0, 8], [3, 5, 7], [8, 8, 8]]) / 8.0 * 3.0 - 1.5
+    with torch.no_grad():
+        assert torch.allclose(baked.density(vertices), network.density(vertices), rtol=1e-4)
+        # between the vertices: the log-density interpolated, so inside the range of the cell's corners
+        cell_corners = torch.tensor([[dx, dy, dz] for dx in (3, 4) for dy in (5, 6) for dz in (1, 2)]) / 8.0 * 3.0 - 1.5
+        corner_densities = network.density(cell_corners)
+        inside = baked.density(cell_corners.mean(0, keepdim=True))
+        assert corner_densities.min() <= inside <= corner_densities.max()
+        assert float(baked.density(torch.tensor([[1.6, 0.0, 0.0]]))) == 0.0  # outside the box
+
+    space = SceneSpace(2.0, 6.0)
+    rays = camera_rays(space)
+    sampler = ProposalSampler([network, small_density_field()], proposal_samples=(32, 16), field_samples=12, bake_resolution=16)
+    sampler.update(10_000, None)
+    with torch.no_grad():
+        evaluated = sampler.sample(rays, space, None, perturb=False)
+    assert_packed_in_range(evaluated, 2.0, 6.0)
+    assert set(sampler._bakes) == {0, 1}
+    first = sampler.baked(0)
+    assert sampler.baked(0) is first  # kept while the weights stay
+    with torch.no_grad():
+        network.encoding.table.mul_(2.0)
+    assert sampler.baked(0) is not first  # made again once they change
+    sampler._bakes.clear()
+    sampler.sample(rays, space, None, perturb=True)  # training: the networks themselves, nothing baked
+    assert not sampler._bakes
+
+
 def test_the_interlevel_loss_is_zero_when_the_proposal_bounds_the_weights_and_positive_otherwise():
     edges = torch.linspace(0.0, 1.0, 9)[None]  # 8 fine intervals
     weights = torch.tensor([[0.0, 0.1, 0.4, 0.3, 0.1, 0.0, 0.0, 0.0]])

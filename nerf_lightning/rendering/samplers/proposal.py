@@ -88,10 +88,16 @@ class ProposalSampler(RaySampler):
     (weight ``interlevel_weight``) against the field's detached weights. :func:`distortion_loss` (weight
     ``distortion_weight``) on the field's weights, in the spacing's [0, 1] coordinates, discourages floaters.
 
+    Evaluation (no perturbation, no gradients): with ``bake_resolution`` set, each proposal network is first read off
+    a grid of that many cells a side (:meth:`DensityField.bake <nerf_lightning.fields.grid.DensityField.bake>`, kept
+    until its weights change), and the proposal levels interpolate that grid instead of running the network: most
+    of an evaluation frame's points are proposal points, so frames render several times faster on a CPU.
+
     Args:
         proposal_fields: one density network a level (nerfacto: two).
         proposal_samples: intervals a ray at each level (nerfacto: 256, 96).
         field_samples: intervals a ray the field is evaluated on (nerfacto: 48).
+        bake_resolution: None, or the cells a side of the grids the proposal networks are baked into for evaluation.
     """
 
     def __init__(
@@ -106,6 +112,7 @@ class ProposalSampler(RaySampler):
         interlevel_weight: float = 1.0,
         distortion_weight: float = 0.002,
         padding: float = 0.01,
+        bake_resolution: int | None = None,
     ) -> None:
         super().__init__()
         if len(proposal_fields) != len(proposal_samples) or not proposal_fields:
@@ -119,6 +126,10 @@ class ProposalSampler(RaySampler):
         self.update_every, self.warmup_steps = update_every, warmup_steps
         self.interlevel_weight, self.distortion_weight = interlevel_weight, distortion_weight
         self.padding = padding
+        if bake_resolution is not None and bake_resolution < 1:
+            raise ValueError(f"ProposalSampler needs bake_resolution >= 1 or None, got {bake_resolution}")
+        self.bake_resolution = bake_resolution
+        self._bakes: dict[int, tuple[tuple, nn.Module]] = {}  # level -> (the weights it was baked from, the bake)
         self.step = 0
 
     def update(self, step: int, field: Field) -> None:
@@ -129,12 +140,22 @@ class ProposalSampler(RaySampler):
         x = min(max(self.step / max(self.anneal_steps, 1), 0.0), 1.0)
         return (self.anneal_slope * x) / ((self.anneal_slope - 1.0) * x + 1.0)
 
+    def baked(self, level: int) -> nn.Module:
+        """Proposal network ``level`` baked at ``bake_resolution`` (made again once its weights have changed)."""
+        proposal = self.proposal_fields[level]
+        weights = tuple((p.data_ptr(), p._version) for p in proposal.parameters()) + (self.bake_resolution,)
+        if self._bakes.get(level, (None,))[0] != weights:
+            self._bakes[level] = (weights, proposal.bake(self.bake_resolution))
+        return self._bakes[level][1]
+
     def sample(self, rays: Rays, space: SceneSpace, field: Field, perturb: bool) -> RaySamples:
         t_enter, t_exit = space.ray_range(rays)
         learn = perturb and torch.is_grad_enabled() and (self.step < self.warmup_steps or self.step % self.update_every == 0)
         exponent = self.anneal() if perturb else 1.0
+        bake = self.bake_resolution is not None and not perturb and not torch.is_grad_enabled()
+        proposals = [self.baked(level) for level in range(len(self.proposal_fields))] if bake else self.proposal_fields
         edges, levels = None, []
-        for proposal, n_samples in zip(self.proposal_fields, self.proposal_samples):
+        for proposal, n_samples in zip(proposals, self.proposal_samples):
             if edges is None:
                 edges = initial_edges(t_enter, t_exit, n_samples, perturb)
             else:
@@ -159,4 +180,5 @@ class ProposalSampler(RaySampler):
         return losses
 
     def extra_repr(self) -> str:
-        return f"proposal_samples={self.proposal_samples}, field_samples={self.field_samples}, update_every={self.update_every}"
+        baked = f", bake_resolution={self.bake_resolution}" if self.bake_resolution is not None else ""
+        return f"proposal_samples={self.proposal_samples}, field_samples={self.field_samples}, update_every={self.update_every}{baked}"

@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from nerf_lightning.fields.appearance import AppearanceEmbedding
 from nerf_lightning.fields.encodings import SinusoidalEncoding, SphericalHarmonicsEncoding
+from nerf_lightning.fields.hash_grid import HashGridEncoding
 from nerf_lightning.fields.mlp import MLP
 
 
@@ -78,38 +79,40 @@ class DensityField(nn.Module):
         ticks = torch.linspace(0.0, 1.0, resolution + 1, device=self.aabb.device)
         y, x = torch.meshgrid(ticks, ticks, indexing="ij")
         plane = torch.stack([x, y], dim=-1).reshape(-1, 2)  # one z slice's vertices, x fastest
-        slices = max(1, chunk_size // plane.shape[0])
         log_density = []
-        for z in ticks.split(slices):  # (D, H, W) = (z, y, x), as grid_sample reads it
+        for z in ticks.split(max(1, chunk_size // plane.shape[0])):  # z slowest: the dense grid's row order
             unit = torch.cat([plane.repeat(len(z), 1), z.repeat_interleave(plane.shape[0])[:, None]], dim=-1)
             log_density.append(self.mlp(self.encoding(unit))[..., 0].float())
-        return BakedDensity(self.aabb, torch.cat(log_density).reshape(1, 1, *(len(ticks),) * 3))
+        return BakedDensity(self.aabb, resolution, torch.cat(log_density))
 
 
 class BakedDensity(nn.Module):
-    """A density field read off a grid: the log-density at the vertices of a (D, H, W) = (z, y, x) grid over the
-    box ``aabb``, trilinearly interpolated (``grid_sample``) and exponentiated, 0 outside the box. What
-    :meth:`DensityField.bake` makes of a proposal network for evaluation: one interpolation a point instead of a
-    hash encoding and an MLP, at the price of the network's detail between the vertices.
+    """A density field read off a grid: the log-density at the (R + 1)^3 vertices of a grid of R cells a side over
+    the box ``aabb``, trilinearly interpolated and exponentiated, 0 outside the box. What :meth:`DensityField.bake`
+    makes of a proposal network for evaluation: one interpolation a point instead of a hash encoding and an MLP, at
+    the price of the network's detail between the vertices. The grid is a one-level
+    :class:`~nerf_lightning.fields.hash_grid.HashGridEncoding` of one feature whose table holds the vertices densely.
 
     Args:
-        aabb: the box in the field space, (6,); log_density: (1, 1, D, H, W).
+        aabb: the box in the field space, (6,); resolution: R;
+        log_density: ((R + 1)^3,) at the vertices, x fastest, then y, then z.
     """
 
-    def __init__(self, aabb: torch.Tensor, log_density: torch.Tensor) -> None:
+    def __init__(self, aabb: torch.Tensor, resolution: int, log_density: torch.Tensor) -> None:
         super().__init__()
-        if log_density.dim() != 5 or log_density.shape[:2] != (1, 1):
-            raise ValueError(f"BakedDensity expected a (1, 1, D, H, W) log-density grid, got {tuple(log_density.shape)}")
+        vertices = (resolution + 1) ** 3
+        if log_density.shape != (vertices,):
+            raise ValueError(f"BakedDensity of resolution {resolution} expected ({vertices},) vertex log-densities, got {tuple(log_density.shape)}")
         self.register_buffer("aabb", aabb.detach().clone())
-        self.register_buffer("log_density", log_density)
+        self.grid = HashGridEncoding(n_levels=1, features_per_level=1, log2_table_size=math.ceil(math.log2(vertices)),
+                                     base_resolution=resolution, max_resolution=resolution).to(log_density.device)
+        self.grid.table = nn.Parameter(log_density[:, None].clone(), requires_grad=False)
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) field-space points -> (...,) densities >= 0, 0 outside the box."""
         unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
-        grid = (unit.reshape(1, 1, 1, -1, 3) * 2.0 - 1.0).to(self.log_density.dtype)
-        log_density = F.grid_sample(self.log_density, grid, mode="bilinear", padding_mode="border", align_corners=True)
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
-        return torch.exp(log_density.reshape(points.shape[:-1])) * inside
+        return torch.exp(self.grid(unit)[..., 0]) * inside
 
 
 class GridField(nn.Module):

@@ -73,7 +73,7 @@ def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):
 
     run = tmp_path / "run"
     process = subprocess.Popen(
-        [sys.executable, "-m", "nerf_lightning.cli.train", *TINY, "trainer.max_steps=1000000", "data.val_steps=[5]",
+        [sys.executable, "-X", "faulthandler", "-m", "nerf_lightning.cli.train", *TINY, "trainer.max_steps=1000000", "data.val_steps=[5]",
          "callbacks.last_checkpoint.every_n_train_steps=1000000", f"hydra.run.dir={run}"],
         cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )
@@ -84,7 +84,12 @@ def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):
             time.sleep(0.2)
         time.sleep(1.0)  # then let it take more steps
         process.send_signal(signal.SIGINT)
-        _, stderr = process.communicate(timeout=120)
+        try:
+            _, stderr = process.communicate(timeout=120)
+        except subprocess.TimeoutExpired:  # seen once in CI: say where it hung (faulthandler dumps every thread on SIGABRT)
+            process.send_signal(signal.SIGABRT)
+            _, stderr = process.communicate(timeout=30)
+            raise AssertionError(f"training did not stop within 120 s of Ctrl-C; where it was:\n{stderr[-6000:]}") from None
     finally:
         process.kill()
     assert process.returncode != 0

@@ -76,6 +76,8 @@ def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):
         [sys.executable, "-X", "faulthandler", "-m", "nerf_lightning.cli.train", *TINY, "trainer.max_steps=1000000", "data.val_steps=[5]",
          "callbacks.last_checkpoint.every_n_train_steps=1000000", f"hydra.run.dir={run}"],
         cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        # a shell's background job (CI run with `&`) ignores SIGINT, and its children inherit that: give the run Ctrl-C back
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         deadline = time.monotonic() + 120

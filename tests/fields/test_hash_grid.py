@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from nerf_lightning.fields import GridField, HashGridEncoding, SphericalHarmonicsEncoding, TensorVMEncoding
-from nerf_lightning.fields.hash_grid import level_resolutions
+from nerf_lightning.fields.hash_grid import gather_rows, level_resolutions
 
 
 def hash_grid_field(aabb, **encoding) -> GridField:
@@ -94,6 +94,21 @@ def test_hash_encoding_passes_gradients_to_its_table():
     table = encoding.table.detach().clone().requires_grad_(True)
     # gradcheck through the gather: analytic and numerical gradients with respect to the table agree
     assert torch.autograd.gradcheck(lambda t: torch.func.functional_call(encoding, {"table": t}, (points,)), (table,))
+
+
+def test_gathering_rows_of_two_as_complex_numbers_equals_index_select_and_its_gradient():
+    generator = torch.Generator().manual_seed(3)
+    for width, dtype in ((2, torch.float32), (2, torch.float64), (3, torch.float32)):
+        table = torch.randn(50, width, generator=generator, dtype=dtype, requires_grad=True)
+        rows = torch.randint(0, 40, (200,), generator=generator)  # repeats: the backward must add them up
+        upstream = torch.randn(200, width, generator=generator, dtype=dtype)
+        part = table[10:]  # the hashed levels' part of the table starts mid-storage
+        gathered = gather_rows(part, rows)
+        (grad,) = torch.autograd.grad((gathered * upstream).sum(), table)
+        expected = torch.index_select(part, 0, rows)
+        (expected_grad,) = torch.autograd.grad((expected * upstream).sum(), table)
+        assert gathered.dtype == dtype and torch.equal(gathered, expected)
+        assert torch.allclose(grad, expected_grad, atol=1e-6) and bool((grad[:10] == 0).all())
 
 
 def test_hash_encoding_keeps_leading_axes_and_rejects_wrong_widths():

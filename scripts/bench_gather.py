@@ -1,0 +1,108 @@
+"""The hash grid's row gather on a CPU, two ways in one process, interleaved: ``gather_rows`` (rows of two float32
+gathered as complex64 elements) against a plain ``index_select``. Times the encoding at the presets' sizes (no grad,
+forward + backward) and, given a checkpoint, a training step of its model (forward, backward and Adam on random rays
+of its training views) and a held-out frame at half size. Medians, fixed seed, JSON out.
+
+    .venv/bin/python scripts/bench_gather.py --ckpt <run>/checkpoints/last.ckpt --out docs/bench/hash_gather_cpu.json
+
+The two ways alternate in blocks (ABBA...), so that a machine whose speed drifts, as a shared VM's does, weighs on
+both alike; a separate run of each, minutes apart, can differ by more than the gain.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+import nerf_lightning.fields.hash_grid as hash_grid
+from nerf_lightning.checkpoints import load_model, load_run_data
+from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.rendering.views import render_view
+
+WAYS = {"complex64": hash_grid.gather_rows, "index_select": lambda table, rows: torch.index_select(table, 0, rows)}
+SIZES = [("proposal_5_levels", dict(n_levels=5, log2_table_size=17, base_resolution=16, max_resolution=128), 131072),
+         ("field_8_levels", dict(n_levels=8, log2_table_size=19, max_resolution=1024), 49152),
+         ("field_16_levels", dict(n_levels=16, log2_table_size=19, max_resolution=2048), 100_000)]
+
+
+def interleaved(function: Callable[[], object], blocks: int, per_block: int) -> dict[str, float]:
+    """Median seconds of ``function`` under each way of gathering, ``blocks`` alternating blocks of ``per_block`` calls."""
+    function()  # warm-up
+    seconds: dict[str, list[float]] = {name: [] for name in WAYS}
+    order = list(WAYS)
+    for block in range(blocks):
+        for name in order if block % 2 == 0 else order[::-1]:
+            hash_grid.gather_rows = WAYS[name]
+            for _ in range(per_block):
+                started = time.perf_counter()
+                function()
+                seconds[name].append(time.perf_counter() - started)
+    hash_grid.gather_rows = WAYS["complex64"]
+    return {name: round(statistics.median(values), 4) for name, values in seconds.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ckpt", type=Path, default=None, help="a proposal or hash-grid checkpoint: also time its training step and a frame")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    torch.manual_seed(0)
+    result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+              "seconds_median": {}}
+    for name, options, n_points in SIZES:
+        encoding, points = hash_grid.HashGridEncoding(**options), torch.rand(n_points, 3)
+
+        def no_grad():
+            with torch.no_grad():
+                encoding(points)
+
+        def forward_backward():
+            encoding.table.grad = None
+            encoding(points).square().sum().backward()
+
+        result["seconds_median"][f"{name}_no_grad"] = interleaved(no_grad, 8, 3)
+        result["seconds_median"][f"{name}_forward_backward"] = interleaved(forward_backward, 8, 3)
+        print(name, {key: value for key, value in result["seconds_median"].items() if key.startswith(name)}, flush=True)
+    if args.ckpt is not None:
+        model, info = load_model(args.ckpt)
+        result["checkpoint"] = str(args.ckpt.resolve())
+        scene = load_run_data(info["config"]).scene
+        train = scene.train
+        origins, directions = image_rays(train.K, train.c2w, train.height, train.width)  # (V, H, W, 3)
+        cameras = torch.arange(len(train))[:, None, None].expand(origins.shape[:3]).reshape(-1)
+        origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, eps=1e-15)
+        model.train()
+        steps = iter(range(10**9))
+
+        def training_step():
+            rays = torch.randint(0, len(origins), (1024,))
+            model.sampler.update(1000 + next(steps), model.field)  # past the proposal networks' warm-up: as most steps
+            out = model.render(origins[rays], directions[rays], perturb=True, camera_indices=cameras[rays])
+            target = torch.rand(1024, 3)
+            loss = F.mse_loss(out["rgb"], target) + sum(model.sampler.losses(out["samples"], out, target).values())
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+
+        result["seconds_median"]["training_step_1024_rays"] = interleaved(training_step, 12, 5)
+        model.eval()
+        views = scene.held_out("test").scaled(0.5)
+        result["frame_size"] = [views.width, views.height]
+        result["seconds_median"]["frame_half_size"] = interleaved(
+            lambda: render_view(model, views.K[0], views.c2w[0], views.height, views.width), 2, 1)
+        print({key: result["seconds_median"][key] for key in ("training_step_1024_rays", "frame_half_size")}, flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -124,8 +124,7 @@ def gather_rows(table: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
 
     On a CPU, rows of two float32 (Instant-NGP's and nerfacto's F = 2) are gathered as single complex64 elements:
     PyTorch's CPU ``index_select`` and its backward (``index_add``) move one 8-byte element a row faster than a row of
-    two floats (the encoding's forward + backward 15 to 25 % faster; docs/benchmarks.md). The values are the same."""
+    two floats (the encoding's forward + backward 11 to 25 % faster; docs/benchmarks.md). The values are the same."""
     if table.device.type == "cpu" and table.shape[-1] == 2 and table.dtype in (torch.float32, torch.float64):
         return torch.view_as_real(torch.index_select(torch.view_as_complex(table), 0, rows))
     return torch.index_select(table, 0, rows)
-

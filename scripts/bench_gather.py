@@ -15,6 +15,7 @@ import argparse
 import json
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,10 +28,10 @@ from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.rendering.views import render_view
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_hash_grid import SIZES  # noqa: E402  the presets' encodings
+
 WAYS = {"complex64": hash_grid.gather_rows, "index_select": lambda table, rows: torch.index_select(table, 0, rows)}
-SIZES = [("proposal_5_levels", dict(n_levels=5, log2_table_size=17, base_resolution=16, max_resolution=128), 131072),
-         ("field_8_levels", dict(n_levels=8, log2_table_size=19, max_resolution=1024), 49152),
-         ("field_16_levels", dict(n_levels=16, log2_table_size=19, max_resolution=2048), 100_000)]
 
 
 def interleaved(function: Callable[[], object], blocks: int, per_block: int) -> dict[str, float]:

@@ -29,7 +29,7 @@ from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.rendering.views import render_view
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_hash_grid import SIZES  # noqa: E402  the presets' encodings
+from bench_hash_grid import SIZES, encoding_calls  # noqa: E402  the presets' encodings, timed the same way
 
 WAYS = {"complex64": hash_grid.gather_rows, "index_select": lambda table, rows: torch.index_select(table, 0, rows)}
 
@@ -59,16 +59,7 @@ def main() -> None:
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
               "seconds_median": {}}
     for name, options, n_points in SIZES:
-        encoding, points = hash_grid.HashGridEncoding(**options), torch.rand(n_points, 3)
-
-        def no_grad():
-            with torch.no_grad():
-                encoding(points)
-
-        def forward_backward():
-            encoding.table.grad = None
-            encoding(points).square().sum().backward()
-
+        no_grad, forward_backward = encoding_calls(options, n_points)
         result["seconds_median"][f"{name}_no_grad"] = interleaved(no_grad, 8, 3)
         result["seconds_median"][f"{name}_forward_backward"] = interleaved(forward_backward, 8, 3)
         print(name, {key: value for key, value in result["seconds_median"].items() if key.startswith(name)}, flush=True)

@@ -11,6 +11,7 @@ import argparse
 import json
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -34,6 +35,22 @@ def best_ms(function, repeats: int = 7) -> float:
     return round(min(times) * 1000.0, 1)
 
 
+def encoding_calls(options: dict, n_points: int) -> tuple[Callable[[], None], Callable[[], None]]:
+    """A ``HashGridEncoding(**options)`` and ``n_points`` random points -> the two calls timed: its no-grad forward,
+    and a forward + backward (into the table's gradient)."""
+    encoding, points = hash_grid.HashGridEncoding(**options), torch.rand(n_points, 3)
+
+    def forward_no_grad() -> None:
+        with torch.no_grad():
+            encoding(points)
+
+    def forward_backward() -> None:
+        encoding.table.grad = None
+        encoding(points).square().sum().backward()
+
+    return forward_no_grad, forward_backward
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
@@ -41,16 +58,7 @@ def main() -> None:
     torch.manual_seed(0)
     result = {"code": hash_grid.__file__, "torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(), "sizes": {}}
     for name, options, n_points in SIZES:
-        encoding, points = hash_grid.HashGridEncoding(**options), torch.rand(n_points, 3)
-
-        def forward_no_grad():
-            with torch.no_grad():
-                encoding(points)
-
-        def forward_backward():
-            encoding.table.grad = None
-            encoding(points).square().sum().backward()
-
+        forward_no_grad, forward_backward = encoding_calls(options, n_points)
         result["sizes"][name] = {"options": options, "points": n_points, "no_grad_ms": best_ms(forward_no_grad), "forward_backward_ms": best_ms(forward_backward)}
         print(name, result["sizes"][name], flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)

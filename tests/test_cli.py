@@ -88,7 +88,7 @@ def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):
         process.send_signal(signal.SIGINT)
         try:
             _, stderr = process.communicate(timeout=120)
-        except subprocess.TimeoutExpired:  # seen once in CI: say where it hung (faulthandler dumps every thread on SIGABRT)
+        except subprocess.TimeoutExpired:  # should it hang, say where (faulthandler dumps every thread on SIGABRT)
             process.send_signal(signal.SIGABRT)
             _, stderr = process.communicate(timeout=30)
             raise AssertionError(f"training did not stop within 120 s of Ctrl-C; where it was:\n{stderr[-6000:]}") from None

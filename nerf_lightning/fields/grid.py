@@ -136,6 +136,9 @@ class GridField(nn.Module):
         appearance_dim: > 0 gives every training image a learnt vector of this width that the colour MLP also
             sees (:class:`~nerf_lightning.fields.appearance.AppearanceEmbedding`, nerfacto's 32): colour may vary
             with the image's exposure, density may not. Views that are not training images get the mean vector.
+        appearance_init: ``zeros`` or ``normal`` (nerfstudio's N(0, 1)): the vectors' start.
+        appearance_penalty: weight of the vectors' mean squared norm in the loss (keeps the mean vector, which
+            held-out views get, among the ones the colour MLP learnt from); 0 for none.
     """
 
     def __init__(
@@ -147,6 +150,8 @@ class GridField(nn.Module):
         colour_layers: int = 2,
         direction_encoding: str = "sh",
         appearance_dim: int = 0,
+        appearance_init: str = "zeros",
+        appearance_penalty: float = 0.01,
     ) -> None:
         super().__init__()
         self.register_buffer("aabb", check_aabb(aabb, type(self).__name__))
@@ -158,7 +163,7 @@ class GridField(nn.Module):
             self.direction_encoding = SinusoidalEncoding(3, 4)
         else:
             raise ValueError(f"{type(self).__name__}: direction_encoding must be sh or sinusoidal, got '{direction_encoding}'")
-        self.appearance = AppearanceEmbedding(appearance_dim) if appearance_dim > 0 else None
+        self.appearance = AppearanceEmbedding(appearance_dim, appearance_init, appearance_penalty) if appearance_dim > 0 else None
         self.colour_mlp = MLP(geometry_features + self.direction_encoding.out_dim + appearance_dim, hidden_width, colour_layers, 3)
 
     def density_and_feature(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -23,7 +23,8 @@ class RadianceFieldModule(FieldModule):
 
     A ray goes through the scene space (:class:`~nerf_lightning.geometry.space.SceneSpace`, taken from the
     DataModule when fitting starts and kept in checkpoints), the sampler, the field and the renderer. Logs
-    ``train/loss``, ``train/psnr``, ``train/samples_per_ray`` and each sampler loss ``train/loss_<name>`` every step;
+    ``train/loss``, ``train/psnr``, ``train/samples_per_ray`` and each sampler loss ``train/loss_<name>`` every step
+    (and the field's appearance penalty, ``train/loss_appearance``, when it has one);
     ``val/psnr``, ``val/ssim`` and, where the scene has true depth, ``val/depth_error`` over whole held-out views
     (:func:`~nerf_lightning.metrics.image_metrics`).
 
@@ -122,6 +123,9 @@ class RadianceFieldModule(FieldModule):
         extra_losses = self.sampler.losses(out["samples"], out, batch["rgb"])
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
+        appearance = getattr(self.field, "appearance", None)
+        if appearance is not None:
+            extra_losses.update(appearance.penalties())
         loss = mse + sum(extra_losses.values())
         if not loss.requires_grad:  # no ray of the batch met an occupied cell: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0

@@ -1,5 +1,6 @@
 """Per-image appearance embeddings: colour varies with the image, density does not; views that are not training
-images get the mean appearance; a checkpoint's table loads at its own size."""
+images get the mean appearance; rows start where asked and pay their penalty; a checkpoint's table loads at its own
+size."""
 
 import pytest
 import torch
@@ -10,7 +11,7 @@ from nerf_lightning.fields import AppearanceEmbedding, GridField, HashGridEncodi
 def field_with_appearance(n_images=5):
     torch.manual_seed(0)
     field = GridField(aabb=[-1, -1, -1, 1, 1, 1], encoding=HashGridEncoding(n_levels=3, log2_table_size=10, max_resolution=32),
-                      hidden_width=16, geometry_features=7, appearance_dim=8)
+                      hidden_width=16, geometry_features=7, appearance_dim=8, appearance_init="normal")
     field.appearance.resize(n_images)
     return field
 
@@ -34,6 +35,29 @@ def test_views_that_are_not_training_images_get_the_mean_appearance():
     with torch.no_grad():
         field.appearance.rows[:] = field.appearance.rows.mean(dim=0)  # every image the mean: the same colours
     torch.testing.assert_close(field(points, viewdirs, torch.arange(50) % 5)["rgb"], mean)
+
+
+def test_rows_start_at_zero_or_from_a_normal_and_a_wrong_start_is_refused():
+    zeros, normal = AppearanceEmbedding(8), AppearanceEmbedding(8, init="normal")
+    zeros.resize(40)
+    normal.resize(40)
+    assert not zeros.rows.any()
+    assert 0.8 < normal.rows.std() < 1.2  # N(0, 1), nerfstudio's nn.Embedding
+    with pytest.raises(ValueError, match="'uniform'"):
+        AppearanceEmbedding(8, init="uniform")
+    with pytest.raises(ValueError, match="penalty must be >= 0, got -1"):
+        AppearanceEmbedding(8, penalty=-1)
+
+
+def test_the_penalty_is_the_weighted_mean_squared_norm_of_the_rows_and_pulls_them_to_zero():
+    embedding = AppearanceEmbedding(4, init="normal", penalty=0.01)
+    embedding.resize(3)
+    penalty = embedding.penalties()["appearance"]
+    torch.testing.assert_close(penalty, 0.01 * sum(float(row @ row) for row in embedding.rows.detach()) / 3 * torch.ones(()))
+    penalty.backward()
+    # d/d row of 0.01 * mean |row|^2 = 0.02 / 3 * row: a gradient step shrinks every row towards 0
+    torch.testing.assert_close(embedding.rows.grad, 0.02 / 3 * embedding.rows.detach())
+    assert AppearanceEmbedding(4, penalty=0).penalties() == {}  # no penalty, no loss term
 
 
 def test_the_table_loads_at_its_saved_size_and_refuses_an_unknown_image():

@@ -130,7 +130,7 @@ def test_appearance_and_camera_refinement_train_and_load_from_their_checkpoint(m
                       "data.batch_size=256", "trainer.max_steps=4", "data.val_every=4", "data.val_views=1",
                       "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false")
     metrics = train(cfg)
-    assert {"train/loss_camera_rotation", "train/loss_camera_translation", "val/psnr"} <= metrics.keys()
+    assert {"train/loss_camera_rotation", "train/loss_camera_translation", "train/loss_appearance", "val/psnr"} <= metrics.keys()
     model, info = load_model(cfg.paths.output_dir + "/checkpoints/last.ckpt")
     n_train = len(load_run_data(info["config"]).scene.train)
     assert model.field.appearance.rows.shape == (n_train, 4) and model.camera_refinement.rows.shape == (n_train, 6)

@@ -49,3 +49,28 @@ def test_a_radiance_field_checkpoint_of_0_1_is_refused_in_one_line_naming_its_ve
                             cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert result.returncode != 0 and "Traceback" not in result.stderr
     assert "written by nerf-lightning 0.1" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("preset", ["fast", "nerfacto_forward_cpu", "nerf_course"])
+def test_an_optimiser_state_saved_before_adam_was_fused_resumes_in_the_fused_one(preset):
+    """The radiance-field presets' Adam is fused (model.optimizer.fused=true); a checkpoint written by the loop Adam of
+    before (its ``step`` a plain CPU tensor) must resume in it and go on counting from its step."""
+    from hydra.utils import instantiate
+
+    from nerf_lightning.config import compose_config
+
+    make = instantiate(compose_config([f"experiment={preset}", "paths.output_dir=/tmp/x"]).model.optimizer)
+    torch.manual_seed(0)
+    params = [torch.nn.Parameter(torch.randn(5, 2)), torch.nn.Parameter(torch.randn(3))]
+    fused = make(params=params)
+    assert fused.defaults["fused"] is True
+    before = torch.optim.Adam([torch.nn.Parameter(p.detach().clone()) for p in params], lr=fused.defaults["lr"])
+    for p in before.param_groups[0]["params"]:
+        p.grad = torch.ones_like(p)
+    before.step(), before.step()
+    fused.load_state_dict(before.state_dict())
+    for p in params:
+        p.grad = torch.ones_like(p)
+    fused.step()
+    assert all(float(fused.state[p]["step"]) == 3.0 for p in params)
+    assert all(torch.isfinite(p).all() for p in params)

@@ -58,6 +58,8 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
         overrides.append("data.scene.size=16")
     if "grid" in cfg.model.sampler:  # an occupancy grid of 32^3: the GPU presets' 128^3 takes 20 s a refresh on a CPU
         overrides.append("model.sampler.grid.resolution=32")
+    if cfg.data.get("ndc"):  # 8 views from around the procedural scene, not a forward-facing capture: its rays reach |x| = 34 in NDC
+        overrides.append("model.field.aabb=[-40.0,-40.0,-1.0,40.0,40.0,1.0]")
     if cfg.model.sampler.get("bake_resolution"):  # proposal networks baked for validation at 16^3, not 128^3
         overrides.append("model.sampler.bake_resolution=16")
     return overrides

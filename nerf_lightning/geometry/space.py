@@ -18,6 +18,8 @@ Checkpoints keep the space as one entry (:meth:`SceneSpace.state`), so every com
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import kornia
@@ -25,7 +27,7 @@ import torch
 from torch import nn
 
 from nerf_lightning.geometry.contraction import Contraction
-from nerf_lightning.geometry.rays import ndc_rays, ndc_to_world, ray_aabb_intersect
+from nerf_lightning.geometry.rays import indexed_pixel_rays, ndc_rays, ndc_to_world, ray_aabb_intersect
 
 
 class Rays(NamedTuple):
@@ -49,13 +51,17 @@ class NDC:
     Args:
         focal, width, height: the training cameras' focal length and image size in pixels.
         near_plane: the plane z = -near_plane maps to NDC z = -1 (infinity maps to +1).
+        reach: the largest |x| and |y| the training rays reach in NDC (:func:`ndc_reach`), or None where unknown
+            (checkpoints written before it was kept). x and y are -1 to 1 across the average camera's picture
+            only: the other cameras see past it.
     """
 
     # a mesh of an NDC field stops short of z = 1, which is infinitely far
     mesh_far_z = 0.95
 
-    def __init__(self, focal: float, width: int, height: int, near_plane: float = 1.0) -> None:
+    def __init__(self, focal: float, width: int, height: int, near_plane: float = 1.0, reach: Sequence[float] | None = None) -> None:
         self.focal, self.width, self.height, self.near_plane = float(focal), int(width), int(height), float(near_plane)
+        self.reach = None if reach is None else (float(reach[0]), float(reach[1]))
 
     def rays(self, origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, 3) world rays -> (N, 3) NDC origins and directions (see :func:`~nerf_lightning.geometry.rays.ndc_rays`)."""
@@ -65,11 +71,26 @@ class NDC:
         """(..., 3) NDC points (z < 1) -> (..., 3) world points."""
         return ndc_to_world(points, self.focal, self.width, self.height, self.near_plane)
 
-    def state(self) -> dict[str, float]:
-        return {"focal": self.focal, "width": self.width, "height": self.height, "near_plane": self.near_plane}
+    def state(self) -> dict[str, Any]:
+        state: dict[str, Any] = {"focal": self.focal, "width": self.width, "height": self.height, "near_plane": self.near_plane}
+        if self.reach is not None:
+            state["reach"] = list(self.reach)
+        return state
 
     def __repr__(self) -> str:
         return f"NDC(focal={self.focal:g}, width={self.width}, height={self.height}, near_plane={self.near_plane:g})"
+
+
+def ndc_reach(views: Any, ndc: NDC) -> tuple[float, float]:
+    """The largest |x| and |y| in NDC that a ray of ``views`` (a :class:`~nerf_lightning.data.scene.Views`) reaches
+    between the near plane (t = 0) and infinity (t = 1). NDC rays are straight, and at either end a picture's rays
+    make a quadrilateral whose corners are the corner pixels' rays, so those four rays of each view bound them all."""
+    height, width = views.height, views.width
+    corners = torch.tensor([0, width - 1, (height - 1) * width, height * width - 1])
+    index = (torch.arange(len(views))[:, None] * height * width + corners).reshape(-1)
+    origins, directions = ndc.rays(*indexed_pixel_rays(views.K, views.c2w, height, width, index))
+    ends = torch.cat([origins, origins + directions])  # (8V, 3): t = 0 and t = 1
+    return float(ends[:, 0].abs().max()), float(ends[:, 1].abs().max())
 
 
 class SceneSpace(nn.Module):
@@ -122,6 +143,7 @@ class SceneSpace(nn.Module):
                 raise ValueError(f"data.ndc=true needs forward-facing cameras looking down -z (an LLFF capture), but {scene.source}'s "
                                  f"mean viewing direction is {[round(v, 3) for v in forward.tolist()]}")
             ndc_space = NDC(float(train.K[0, 0, 0]), train.width, train.height, near_plane=1.0)
+            ndc_space.reach = ndc_reach(train, ndc_space)
             near, far = 0.0, 1.0  # NDC rays run from the near plane (t = 0) to infinity (t = 1)
         return cls(near, far, scene.background, scene.world_from_capture, ndc_space, Contraction() if contract else None)
 
@@ -149,7 +171,17 @@ class SceneSpace(nn.Module):
         return torch.maximum(t_enter, box_enter), torch.minimum(t_exit, box_exit)
 
     def check_box(self, aabb: torch.Tensor, key: str) -> None:
-        """A field's or grid's field-space box must hold a contracted scene's whole cube; ValueError naming ``key``."""
+        """A field's or grid's field-space box must hold a contracted scene's whole cube, and in NDC all that the
+        training rays reach (:attr:`NDC.reach`); ValueError naming ``key`` and the box to set otherwise."""
+        if self.ndc is not None and self.ndc.reach is not None:
+            reach_x, reach_y = self.ndc.reach
+            box = aabb.detach().cpu().float()
+            needed = torch.tensor([-reach_x, -reach_y, -1.0, reach_x, reach_y, 1.0])
+            if bool((box[:3] > needed[:3] + 1e-3).any() or (box[3:] < needed[3:] - 1e-3).any()):
+                x, y = (math.ceil(10 * value) / 10 for value in (reach_x, reach_y))
+                raise ValueError(f"{key} is {box.tolist()}, but the training cameras' rays in NDC (data.ndc=true) reach "
+                                 f"|x| = {reach_x:.2f} and |y| = {reach_y:.2f} from the near plane (z = -1) to infinity (z = 1): "
+                                 f"what they see outside the box would be left out. Set {key}=[-{x}, -{y}, -1.0, {x}, {y}, 1.0] or wider")
         if self.contraction is None:
             return
         bounds = torch.tensor(self.contraction.bounds)

@@ -161,6 +161,7 @@ def test_a_forward_facing_capture_trains_in_ndc_and_renders_from_its_checkpoint(
     run = tmp_path / "run"
     metrics = train(compose_config([
         "experiment=fast_llff", f"data.root={root}", "data.scene.downscale=2", "data.scene.holdout_every=4",
+        "model.field.aabb=[-3.2,-3.2,-1.0,3.2,3.2,1.0]",  # cameras 35 degrees apart see far past the average one's picture
         "model.field.encoding.n_levels=4", "model.field.encoding.log2_table_size=14", "model.field.encoding.max_resolution=128", "model.sampler.grid.resolution=16",
         "data.batch_size=256", "trainer.max_steps=20", "data.val_every=20", "trainer.enable_progress_bar=false",
         "trainer.enable_model_summary=false", f"paths.output_dir={run}",
@@ -168,3 +169,37 @@ def test_a_forward_facing_capture_trains_in_ndc_and_renders_from_its_checkpoint(
     assert metrics["step"] == 20 and np.isfinite(metrics["val/psnr"])
     model, _ = load_model(run / "checkpoints" / "last.ckpt")
     assert model.space.ndc.focal == pytest.approx(float(train_views.K[0, 0, 0])) and (model.space.near, model.space.far) == (0.0, 1.0)
+
+
+def forward_capture(procedural_scene, tmp_path, degrees=35):
+    """The procedural cameras within ``degrees`` of the first one, as an LLFF capture, loaded back."""
+    train_views = procedural_scene.train
+    axes = torch.nn.functional.normalize(train_views.c2w[:, :3, 2], dim=-1)
+    close = (axes @ axes[0] > np.cos(np.radians(degrees))).nonzero()[:, 0].tolist()
+    return load_llff(write_llff(train_views.subset(close), tmp_path / "capture"), downscale=2, holdout_every=4)
+
+
+def test_ndc_reach_is_the_farthest_any_training_ray_goes_in_x_and_y(procedural_scene, tmp_path):
+    from nerf_lightning.geometry.space import ndc_reach
+
+    scene = forward_capture(procedural_scene, tmp_path)
+    space = SceneSpace.from_scene(scene, ndc=True)
+    rays_o, rays_d = image_rays(scene.train.K, scene.train.c2w, scene.train.height, scene.train.width)
+    origins, directions = space.ndc.rays(rays_o.reshape(-1, 3), rays_d.reshape(-1, 3))
+    every_pixel = torch.cat([origins, origins + directions])[:, :2].abs().amax(dim=0)  # all pixels at both ends
+    assert space.ndc.reach == pytest.approx(tuple(every_pixel.tolist()), rel=1e-5)
+    assert space.ndc.reach == pytest.approx(ndc_reach(scene.train, space.ndc))
+    assert max(space.ndc.reach) > 1.0  # the cameras see past the average camera's picture
+    assert SceneSpace.from_state(space.state()).ndc.reach == pytest.approx(space.ndc.reach)  # kept in checkpoints
+
+
+def test_an_ndc_box_that_cuts_off_the_training_rays_is_refused_with_the_box_to_set(procedural_scene, tmp_path):
+    space = SceneSpace.from_scene(forward_capture(procedural_scene, tmp_path), ndc=True)
+    with pytest.raises(ValueError, match=r"model.field.aabb is \[-1.0, -1.0, -1.0, 1.0, 1.0, 1.0\], but the training cameras' rays in NDC "
+                                         r"\(data.ndc=true\) reach \|x\| = .* Set model.field.aabb=\[-.*, -1.0, .*\] or wider"):
+        space.check_box(torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]), "model.field.aabb")
+    x, y = (np.ceil(10 * value) / 10 for value in space.ndc.reach)
+    space.check_box(torch.tensor([-x, -y, -1.0, x, y, 1.0]), "model.field.aabb")  # the box it names is enough
+    state = space.state()
+    del state["ndc"]["reach"]  # a checkpoint written before the reach was kept: nothing to check against
+    SceneSpace.from_state(state).check_box(torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]), "model.field.aabb")

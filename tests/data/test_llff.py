@@ -25,6 +25,15 @@ def write_llff(views, root, downscale=2):
     return root
 
 
+def write_forward_capture(procedural_scene, tmp_path):
+    """The procedural cameras within 35 degrees of the first one, a forward-facing capture, written as LLFF into
+    ``tmp_path / "capture"``."""
+    train_views = procedural_scene.train
+    axes = torch.nn.functional.normalize(train_views.c2w[:, :3, 2], dim=-1)
+    close = (axes @ axes[0] > np.cos(np.radians(35))).nonzero()[:, 0].tolist()
+    return write_llff(train_views.subset(close), tmp_path / "capture")
+
+
 def test_llff_round_trip_without_recentring_gives_the_same_cameras_and_rays(procedural_scene, tmp_path):
     views = procedural_scene.train.subset(list(range(12)))
     root = write_llff(views, tmp_path / "capture")
@@ -153,11 +162,8 @@ def test_a_forward_facing_capture_trains_in_ndc_and_renders_from_its_checkpoint(
     from nerf_lightning.config import compose_config
     from nerf_lightning.training import train
 
-    # the procedural cameras within 35 degrees of one of them: a forward-facing capture
     train_views = procedural_scene.train
-    axes = torch.nn.functional.normalize(train_views.c2w[:, :3, 2], dim=-1)
-    close = (axes @ axes[0] > np.cos(np.radians(35))).nonzero()[:, 0].tolist()
-    root = write_llff(train_views.subset(close), tmp_path / "capture")
+    root = write_forward_capture(procedural_scene, tmp_path)
     run = tmp_path / "run"
     metrics = train(compose_config([
         "experiment=fast_llff", f"data.root={root}", "data.scene.downscale=2", "data.scene.holdout_every=4",
@@ -171,12 +177,9 @@ def test_a_forward_facing_capture_trains_in_ndc_and_renders_from_its_checkpoint(
     assert model.space.ndc.focal == pytest.approx(float(train_views.K[0, 0, 0])) and (model.space.near, model.space.far) == (0.0, 1.0)
 
 
-def forward_capture(procedural_scene, tmp_path, degrees=35):
-    """The procedural cameras within ``degrees`` of the first one, as an LLFF capture, loaded back."""
-    train_views = procedural_scene.train
-    axes = torch.nn.functional.normalize(train_views.c2w[:, :3, 2], dim=-1)
-    close = (axes @ axes[0] > np.cos(np.radians(degrees))).nonzero()[:, 0].tolist()
-    return load_llff(write_llff(train_views.subset(close), tmp_path / "capture"), downscale=2, holdout_every=4)
+def forward_capture(procedural_scene, tmp_path):
+    """:func:`write_forward_capture`, loaded back."""
+    return load_llff(write_forward_capture(procedural_scene, tmp_path), downscale=2, holdout_every=4)
 
 
 def test_ndc_reach_is_the_farthest_any_training_ray_goes_in_x_and_y(procedural_scene, tmp_path):

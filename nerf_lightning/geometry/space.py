@@ -173,20 +173,19 @@ class SceneSpace(nn.Module):
     def check_box(self, aabb: torch.Tensor, key: str) -> None:
         """A field's or grid's field-space box must hold a contracted scene's whole cube, and in NDC all that the
         training rays reach (:attr:`NDC.reach`); ValueError naming ``key`` and the box to set otherwise."""
+        box = aabb.detach().cpu().float()
+
+        def holds(needed: torch.Tensor, tolerance: float) -> bool:
+            return not bool((box[:3] > needed[:3] + tolerance).any() or (box[3:] < needed[3:] - tolerance).any())
+
         if self.ndc is not None and self.ndc.reach is not None:
             reach_x, reach_y = self.ndc.reach
-            box = aabb.detach().cpu().float()
-            needed = torch.tensor([-reach_x, -reach_y, -1.0, reach_x, reach_y, 1.0])
-            if bool((box[:3] > needed[:3] + 1e-3).any() or (box[3:] < needed[3:] - 1e-3).any()):
+            if not holds(torch.tensor([-reach_x, -reach_y, -1.0, reach_x, reach_y, 1.0]), 1e-3):
                 x, y = (math.ceil(10 * value) / 10 for value in (reach_x, reach_y))
                 raise ValueError(f"{key} is {box.tolist()}, but the training cameras' rays in NDC (data.ndc=true) reach "
                                  f"|x| = {reach_x:.2f} and |y| = {reach_y:.2f} from the near plane (z = -1) to infinity (z = 1): "
                                  f"what they see outside the box would be left out. Set {key}=[-{x}, -{y}, -1.0, {x}, {y}, 1.0] or wider")
-        if self.contraction is None:
-            return
-        bounds = torch.tensor(self.contraction.bounds)
-        box = aabb.detach().cpu().float()
-        if bool((box[:3] > bounds[:3] + 1e-6).any() or (box[3:] < bounds[3:] - 1e-6).any()):
+        if self.contraction is not None and not holds(torch.tensor(self.contraction.bounds), 1e-6):
             raise ValueError(f"{key} is {box.tolist()}, but a contracted scene (data.contract=true) fills the cube "
                              f"{list(self.contraction.bounds)}: set {key}={list(self.contraction.bounds)}")
 

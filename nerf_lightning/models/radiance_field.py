@@ -38,6 +38,10 @@ class RadianceFieldModule(FieldModule):
         camera_refinement: learn a pose correction for each training view
             (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`, its own learning rate, its penalties
             logged as ``train/loss_camera_*``); None keeps the poses as loaded.
+        train_background: what a training ray shows where it is not opaque: ``scene`` (the scene space's
+            background, as rendered) or ``random`` (a uniform random colour a ray and a step, Instant-NGP's): with
+            photos that are opaque everywhere (a real capture) a transparent ray then cannot match its pixel, so the
+            field learns surfaces instead of a fog. Not for photos that had alpha: their targets show the background.
     """
 
     kind = "radiance_field"
@@ -51,12 +55,16 @@ class RadianceFieldModule(FieldModule):
         renderer: VolumeRenderer | None = None,
         chunk_size: int = 4096,
         camera_refinement: CameraRefinement | None = None,
+        train_background: str = "scene",
     ) -> None:
         super().__init__(optimizer, scheduler)
         self.field, self.sampler = field, sampler
         self.renderer = renderer or VolumeRenderer()
         self.chunk_size = chunk_size
         self.camera_refinement = camera_refinement
+        if train_background not in ("scene", "random"):
+            raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
+        self.train_background = train_background
         self.space = SceneSpace()
         # the mean over the validated views where a surface is seen (NaN views left out), summed over DDP ranks
         self.val_depth_error = MeanMetric(nan_strategy="ignore")
@@ -119,7 +127,10 @@ class RadianceFieldModule(FieldModule):
         if self.camera_refinement is not None and camera_index is not None:
             rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
         out = self.render(rays_o, rays_d, perturb=True, camera_indices=camera_index)
-        mse = F.mse_loss(out["rgb"], batch["rgb"])
+        rgb = out["rgb"]
+        if self.train_background == "random":  # what a ray leaves transparent shows a random colour, not the photo's
+            rgb = rgb + (1.0 - out["accumulation"])[:, None] * (torch.rand_like(rgb) - self.space.background.to(rgb))
+        mse = F.mse_loss(rgb, batch["rgb"])
         extra_losses = self.sampler.losses(out["samples"], out, batch["rgb"])
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())

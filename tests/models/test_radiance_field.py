@@ -122,6 +122,28 @@ def test_a_batch_whose_rays_all_miss_the_occupied_cells_is_a_step_not_a_crash(ma
     loss.backward()  # gradients of zero, not "element 0 of tensors does not require grad"
 
 
+def test_a_random_training_background_penalises_transparent_rays_only(make_config, scene_cache, monkeypatch):
+    from hydra.utils import instantiate
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    white = torch.ones(4096, 3)  # the procedural scene's background
+    batch = {"rays_o": torch.tensor([[0.0, 0.0, 4.0]]).expand(4096, 3), "rays_d": torch.tensor([[0.0, 0.0, -1.0]]).expand(4096, 3), "rgb": white}
+    losses = {}
+    for background in ("scene", "random"):
+        model = instantiate(make_config("experiment=fast", "model.sampler.grid.resolution=8", f"model.train_background={background}").model)
+        model.sampler.grid.binary.zero_()  # no samples: every ray stays transparent and shows the background
+        model.sampler.update = lambda *args: None  # (the first steps would refresh the grid)
+        losses[background] = float(model.training_step(batch, 0))
+    assert losses["scene"] == 0.0  # the scene's white is the photo's white: a fog would do
+    assert losses["random"] == pytest.approx(1.0 / 3.0, abs=0.02)  # E[(u - 1)^2], u uniform: a transparent ray pays
+    # an opaque ray is what it renders, whatever the background
+    model.render = lambda *args, **kwargs: {"rgb": white, "accumulation": torch.ones(4096), "samples": None, "n_evaluated": 0}
+    model.sampler.losses = lambda *args: {}
+    assert float(model.training_step(batch, 0)) == 0.0
+    with pytest.raises(Exception, match="model.train_background must be scene or random, got 'grey'"):
+        instantiate(make_config("experiment=fast", "model.train_background=grey").model)
+
+
 def test_appearance_and_camera_refinement_train_and_load_from_their_checkpoint(make_config, scene_cache, monkeypatch):
     from nerf_lightning.checkpoints import load_model, load_run_data
 

@@ -71,6 +71,19 @@ def test_hash_encoding_equals_the_plain_loop_reference():
     torch.testing.assert_close(got, expected, rtol=1e-9, atol=1e-9)
 
 
+def test_rows_in_int32_where_no_hash_product_can_overflow_and_in_int64_otherwise():
+    # int32: the primes are reduced modulo T, which keeps the rows (the reference above hashes with the full primes)
+    assert small_encoding().index_dtype == torch.int32
+    # (2048 + 1) * (2^21 - 1) > 2^31: int64, and still the reference's rows
+    encoding = HashGridEncoding(n_levels=2, log2_table_size=21, base_resolution=16, max_resolution=2048).double()
+    assert encoding.index_dtype == torch.int64
+    with torch.no_grad():
+        encoding.table.uniform_(-1.0, 1.0)
+    points = torch.rand(20, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    expected = torch.tensor([reference_encoding(encoding, p.tolist()) for p in points], dtype=torch.float64)
+    torch.testing.assert_close(encoding(points), expected, rtol=1e-9, atol=1e-9)
+
+
 def test_hash_encoding_is_continuous_across_cell_borders():
     encoding = small_encoding().double()
     # a point on a border of the finest level's cells (x = 32/64), approached from both sides

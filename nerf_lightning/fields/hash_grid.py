@@ -61,18 +61,18 @@ class HashGridEncoding(nn.Module):
         self.table_size = 2**log2_table_size
         resolutions = level_resolutions(n_levels, base_resolution, max_resolution)
         sizes = [min((n + 1) ** 3, self.table_size) for n in resolutions]
-        self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.long), persistent=False)
-        self.register_buffer("hashed", torch.tensor([(n + 1) ** 3 > self.table_size for n in resolutions]), persistent=False)
-        # the levels whose vertices all fit their table come first (resolutions grow): they index densely
-        self.n_dense = int((~self.hashed).sum())
-        self.dense_rows = sum(sizes[: self.n_dense])  # where the hashed levels' rows start
-        self.register_buffer("offsets", torch.tensor([0, *sizes[:-1]], dtype=torch.long).cumsum(0), persistent=False)
         # rows are computed in int32 where no product can overflow it: a hashed coordinate times a prime reduced
         # modulo T (the same row: only the low log2 T bits are kept) stays below (N_max + 1) (T - 1); on a CPU the
         # no-grad forward is then about 40 % faster (half the bytes through the hashing; docs/benchmarks.md)
         fits = (max(resolutions) + 1) * (self.table_size - 1) < 2**31 and sum(sizes) < 2**31
         self.index_dtype = torch.int32 if fits else torch.long
         self.primes = tuple(prime & (self.table_size - 1) for prime in PRIMES)
+        self.register_buffer("resolutions", torch.tensor(resolutions, dtype=self.index_dtype), persistent=False)
+        self.register_buffer("hashed", torch.tensor([(n + 1) ** 3 > self.table_size for n in resolutions]), persistent=False)
+        # the levels whose vertices all fit their table come first (resolutions grow): they index densely
+        self.n_dense = int((~self.hashed).sum())
+        self.dense_rows = sum(sizes[: self.n_dense])  # where the hashed levels' rows start
+        self.register_buffer("offsets", torch.tensor([0, *sizes[:-1]]).cumsum(0).to(self.index_dtype), persistent=False)
         # (2, 1, 1): a cell's lower and upper vertex along an axis, on the encoding's device
         self.register_buffer("corner_steps", torch.tensor([0, 1], dtype=self.index_dtype)[:, None, None], persistent=False)
         # (sum of the levels' table sizes, F): every level's vertex features, one level after another
@@ -92,11 +92,11 @@ class HashGridEncoding(nn.Module):
         if hashed:  # a hashed level's table is T rows from the part's start at level * T: its offset is an OR (= XOR)
             mask = self.table_size - 1
             x, y, z = (((lower[axis] + steps) * self.primes[axis]) & mask for axis in range(3))  # (2, n, M) each
-            x = x ^ (self.offsets[self.n_dense:] - self.offsets[self.n_dense]).to(x.dtype)[:, None]
+            x = x ^ (self.offsets[self.n_dense:] - self.offsets[self.n_dense])[:, None]
             return (x[:, None] ^ y[None, :])[:, :, None] ^ z[None, None, :]
-        side = (self.resolutions[: self.n_dense] + 1).to(lower.dtype)[:, None]  # (n, 1)
+        side = (self.resolutions[: self.n_dense] + 1)[:, None]  # (n, 1)
         x, y, z = (lower[axis] + steps for axis in range(3))  # (2, n, M) each
-        x = x + self.offsets[: self.n_dense, None].to(lower.dtype)
+        x = x + self.offsets[: self.n_dense, None]
         return (x[:, None] + y[None, :] * side)[:, :, None] + z[None, None, :] * (side * side)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:

@@ -114,12 +114,15 @@ class RadianceFieldModule(FieldModule):
         """Evaluation render of any number of rays, ``chunk_size`` (default: the module's) at a time: rgb, depth,
         accumulation; None when ``abort()`` turns true between two chunks (the viewer, when its camera moves on)."""
         size = chunk_size or self.chunk_size
-        parts = []
+        keys = ("rgb", "depth", "accumulation")
+        parts = {key: [] for key in keys}
         for origins, directions in zip(rays_o.split(size), rays_d.split(size)):
             if abort is not None and abort():
                 return None
-            parts.append(self.render(origins, directions))
-        return {key: torch.cat([part[key] for part in parts]) for key in ("rgb", "depth", "accumulation")}
+            out = self.render(origins, directions)
+            for key in keys:  # only these: a chunk's samples and weights are let go at once (a fern frame's would be 1 GB)
+                parts[key].append(out[key])
+        return {key: torch.cat(parts[key]) for key in keys}
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)

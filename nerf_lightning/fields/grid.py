@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -10,6 +11,7 @@ from torch import nn
 
 from nerf_lightning.fields.appearance import AppearanceEmbedding
 from nerf_lightning.fields.encodings import SinusoidalEncoding, SphericalHarmonicsEncoding
+from nerf_lightning.fields.hash_grid import HashGridEncoding
 from nerf_lightning.fields.mlp import MLP
 
 
@@ -90,8 +92,10 @@ class BakedDensity(nn.Module):
     the box ``aabb``, trilinearly interpolated and exponentiated, 0 outside the box. What :meth:`DensityField.bake`
     makes of a proposal network for evaluation: one interpolation a point instead of a hash encoding and an MLP, at
     the price of the network's detail between the vertices. The interpolation is PyTorch's ``grid_sample`` (one
-    vectorised kernel on a CPU: a fern frame's proposal samples 1.5 to 2.5x faster than a one-level hash grid's
-    gather, docs/benchmarks.md).
+    vectorised kernel; on a CPU faster than the same interpolation as a one-level hash grid, docs/benchmarks.md),
+    except on an Apple GPU before torch 2.9, which has no 3D ``grid_sample``: there a one-level, one-feature
+    :class:`~nerf_lightning.fields.hash_grid.HashGridEncoding` whose table holds the vertices densely interpolates
+    them (the same values).
 
     Args:
         aabb: the box in the field space, (6,); resolution: R;
@@ -106,15 +110,30 @@ class BakedDensity(nn.Module):
         self.register_buffer("aabb", aabb.detach().clone())
         # (1, 1, z, y, x): grid_sample's (N, C, D, H, W), whose sampling points are given as (x, y, z)
         self.register_buffer("log_density", log_density.detach().reshape(1, 1, side, side, side).clone())
+        self._vertex_encoding: HashGridEncoding | None = None
 
     def density(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) field-space points -> (...,) densities >= 0, 0 outside the box."""
         unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
+        if self.log_density.device.type == "mps" and torch.__version__ < (2, 9):
+            return torch.exp(self.vertex_encoding()(unit)[..., 0]) * inside
         # align_corners: -1 and 1 are the first and the last vertex; border: a point outside reads the nearest face
         grid = (2.0 * unit - 1.0).reshape(1, 1, 1, -1, 3).to(self.log_density.dtype)
         log_density = F.grid_sample(self.log_density, grid, mode="bilinear", padding_mode="border", align_corners=True)
         return torch.exp(log_density.reshape(points.shape[:-1])) * inside
+
+    def vertex_encoding(self) -> HashGridEncoding:
+        """The vertices as a one-level, one-feature hash grid held densely (made once): the interpolation where
+        ``grid_sample`` has no 3D kernel."""
+        if self._vertex_encoding is None:
+            resolution, vertices = self.log_density.shape[-1] - 1, self.log_density.numel()
+            encoding = HashGridEncoding(n_levels=1, features_per_level=1, log2_table_size=math.ceil(math.log2(vertices)),
+                                        base_resolution=resolution, max_resolution=resolution).to(self.log_density.device)
+            encoding.table = nn.Parameter(self.log_density.reshape(-1, 1).clone(), requires_grad=False)
+            self._vertex_encoding = encoding
+        return self._vertex_encoding
+
 
 
 class GridField(nn.Module):

@@ -116,12 +116,14 @@ class BakedDensity(nn.Module):
         """(..., 3) field-space points -> (...,) densities >= 0, 0 outside the box."""
         unit = (points - self.aabb[:3]) / (self.aabb[3:] - self.aabb[:3])
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
-        if self.log_density.device.type == "mps" and torch.__version__ < (2, 9):
-            return torch.exp(self.vertex_encoding()(unit)[..., 0]) * inside
-        # align_corners: -1 and 1 are the first and the last vertex; border: a point outside reads the nearest face
-        grid = (2.0 * unit - 1.0).reshape(1, 1, 1, -1, 3).to(self.log_density.dtype)
-        log_density = F.grid_sample(self.log_density, grid, mode="bilinear", padding_mode="border", align_corners=True)
-        return torch.exp(log_density.reshape(points.shape[:-1])) * inside
+        if has_grid_sample_3d(self.log_density.device):
+            # align_corners: -1 and 1 are the first and the last vertex; border: a point outside reads the nearest face
+            grid = (2.0 * unit - 1.0).reshape(1, 1, 1, -1, 3).to(self.log_density.dtype)
+            log_density = F.grid_sample(self.log_density, grid, mode="bilinear", padding_mode="border", align_corners=True)
+            log_density = log_density.reshape(points.shape[:-1])
+        else:
+            log_density = self.vertex_encoding()(unit)[..., 0]
+        return torch.exp(log_density) * inside
 
     def vertex_encoding(self) -> HashGridEncoding:
         """The vertices as a one-level, one-feature hash grid held densely (made once): the interpolation where
@@ -134,6 +136,11 @@ class BakedDensity(nn.Module):
             self._vertex_encoding = encoding
         return self._vertex_encoding
 
+
+
+def has_grid_sample_3d(device: torch.device) -> bool:
+    """Whether ``grid_sample`` has a 3D kernel on ``device``: everywhere but an Apple GPU before torch 2.9."""
+    return device.type != "mps" or torch.__version__ >= (2, 9)
 
 
 class GridField(nn.Module):

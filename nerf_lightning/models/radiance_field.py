@@ -120,7 +120,7 @@ class RadianceFieldModule(FieldModule):
             if abort is not None and abort():
                 return None
             out = self.render(origins, directions)
-            for key in keys:  # only these: a chunk's samples and weights are let go at once (a fern frame's would be 1 GB)
+            for key in keys:  # only these: a chunk's samples and weights go with the next chunk (a fern frame's were 1 GB)
                 parts[key].append(out[key])
         return {key: torch.cat(parts[key]) for key in keys}
 

@@ -137,7 +137,6 @@ class BakedDensity(nn.Module):
         return self._vertex_encoding
 
 
-
 def has_grid_sample_3d(device: torch.device) -> bool:
     """Whether ``grid_sample`` has a 3D kernel on ``device``: everywhere but an Apple GPU before torch 2.9."""
     return device.type != "mps" or torch.__version__ >= (2, 9)

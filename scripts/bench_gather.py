@@ -1,5 +1,7 @@
-"""The hash grid's row gather on a CPU, two ways in one process, interleaved: ``gather_rows`` (rows of two float32
-gathered as complex64 elements) against a plain ``index_select``. Times the encoding at the presets' sizes (no grad,
+"""The hash grid's row gather on a CPU, three ways in one process, interleaved: ``gather_rows`` (rows of two float32
+gathered as complex64 elements, the dense and the hashed levels' parts' gradients added into one buffer), the same
+through autograd a part (``per_part_complex64``: a buffer the table's size a part, added up; the code before
+2026-11-24's last change) and a plain ``index_select`` a part. Times the encoding at the presets' sizes (no grad,
 forward + backward) and, given a checkpoint, a training step of its model (forward, backward and Adam on random rays
 of its training views) and a held-out frame at half size. Medians, fixed seed, JSON out.
 
@@ -31,7 +33,24 @@ from nerf_lightning.rendering.views import render_view
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_hash_grid import SIZES, encoding_calls  # noqa: E402  the presets' encodings, timed the same way
 
-WAYS = {"complex64": hash_grid.gather_rows, "index_select": lambda table, rows: torch.index_select(table, 0, rows)}
+
+
+def per_part(complex64: bool) -> Callable[[torch.Tensor, list[torch.Tensor], list[int]], list[torch.Tensor]]:
+    """``gather_rows`` as autograd does it a part: one ``index_select`` (as complex64 elements or not) on each part."""
+
+    def gather(table: torch.Tensor, rows: list[torch.Tensor], starts: list[int]) -> list[torch.Tensor]:
+        found = []
+        for start, part in zip(starts, rows):
+            if complex64 and table.shape[-1] == 2:
+                found.append(torch.view_as_real(torch.index_select(torch.view_as_complex(table[start:]), 0, part)))
+            else:
+                found.append(torch.index_select(table[start:], 0, part))
+        return found
+
+    return gather
+
+
+WAYS = {"one_buffer": hash_grid.gather_rows, "per_part_complex64": per_part(True), "per_part_index_select": per_part(False)}
 
 
 def interleaved(function: Callable[[], object], blocks: int, per_block: int) -> dict[str, float]:
@@ -46,7 +65,7 @@ def interleaved(function: Callable[[], object], blocks: int, per_block: int) -> 
                 started = time.perf_counter()
                 function()
                 seconds[name].append(time.perf_counter() - started)
-    hash_grid.gather_rows = WAYS["complex64"]
+    hash_grid.gather_rows = WAYS["one_buffer"]
     return {name: round(statistics.median(values), 4) for name, values in seconds.items()}
 
 

@@ -14,6 +14,7 @@ is the trilinear interpolation of its cell's 8 vertex features; the output conca
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -113,24 +114,65 @@ class HashGridEncoding(nn.Module):
         w = torch.stack([1.0 - fraction, fraction])  # (2, 3, L, M)
         weights = w[:, None, None, 0] * w[None, :, None, 1] * w[None, None, :, 2]
         lower = lower.to(self.index_dtype)
-        features = []
-        for levels, hashed in ((slice(0, self.n_dense), False), (slice(self.n_dense, self.n_levels), True)):
-            if levels.start == levels.stop:
-                continue
-            rows = self.corner_rows(lower[:, levels], hashed)  # (2, 2, 2, n, M)
-            table = self.table[self.dense_rows:] if hashed else self.table  # the part the rows count from
-            corner_features = gather_rows(table, rows.reshape(-1)).view(*rows.shape, self.features_per_level)
-            features.append((weights[..., levels, :, None] * corner_features).sum(dim=(0, 1, 2)))  # (n, M, F)
+        parts = [(levels, hashed) for levels, hashed in ((slice(0, self.n_dense), False), (slice(self.n_dense, self.n_levels), True))
+                 if levels.start < levels.stop]
+        rows = [self.corner_rows(lower[:, levels], hashed) for levels, hashed in parts]  # (2, 2, 2, n, M) each
+        # each part's rows count from its own start in the table (the hashed levels' from dense_rows)
+        starts = [self.dense_rows if hashed else 0 for _, hashed in parts]
+        corner_features = gather_rows(self.table, [part.reshape(-1) for part in rows], starts)
+        features = [
+            (weights[..., levels, :, None] * found.view(*part.shape, self.features_per_level)).sum(dim=(0, 1, 2))  # (n, M, F)
+            for (levels, _), part, found in zip(parts, rows, corner_features)
+        ]
         features = torch.cat(features) if len(features) > 1 else features[0]  # (L, M, F)
         return features.transpose(0, 1).reshape(*lead, self.out_dim)
 
 
-def gather_rows(table: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """``table[rows]``: (T, F) features, (K,) row indices -> (K, F), differentiable in ``table``.
+def gather_rows(table: torch.Tensor, rows: Sequence[torch.Tensor], starts: Sequence[int]) -> list[torch.Tensor]:
+    """Rows of a table in parts: (T, F) features, the parts' (K_i,) row indices, each counted from row ``starts[i]``
+    -> each part's (K_i, F) features, ``table[starts[i]:][rows[i]]``, differentiable in ``table``.
 
-    On a CPU, rows of two float32 (Instant-NGP's and nerfacto's F = 2) are gathered as single complex64 elements:
-    PyTorch's CPU ``index_select`` and its backward (``index_add``) move one 8-byte element a row faster than a row of
-    two floats (the encoding's forward + backward 11 to 25 % faster; docs/benchmarks.md). The values are the same."""
+    The backward adds every part's gradient into one (T, F) buffer. Autograd, given one ``index_select`` a part, would
+    make a buffer of the whole table's size for each part (and another for a part's slice) and add them up: fresh
+    memory to zero and add, a ``nerfacto_forward_cpu`` training step on a CPU 3 to 12 % slower (docs/benchmarks.md).
+    On a CPU, rows of two float32 (Instant-NGP's and nerfacto's F = 2) are gathered and scattered as single complex64
+    elements: PyTorch's CPU ``index_select`` and ``index_add`` move one 8-byte element a row faster than a row of two
+    floats (the encoding's forward + backward 11 to 25 % faster). The values are the same."""
+    if len(rows) != len(starts):
+        raise ValueError(f"gather_rows expected a start for each part's rows, got {len(rows)} parts and {len(starts)} starts")
+    return list(_GatherRows.apply(table, tuple(int(start) for start in starts), *rows))
+
+
+def _as_elements(table: torch.Tensor) -> torch.Tensor:
+    """(T, F) -> the tensor whose dim-0 elements are gathered: (T,) complex64/128 for rows of two floats on a CPU."""
     if table.device.type == "cpu" and table.shape[-1] == 2 and table.dtype in (torch.float32, torch.float64):
-        return torch.view_as_real(torch.index_select(torch.view_as_complex(table), 0, rows))
-    return torch.index_select(table, 0, rows)
+        return torch.view_as_complex(table)
+    return table
+
+
+class _GatherRows(torch.autograd.Function):
+    """``gather_rows``: forward one ``index_select`` a part, backward one ``index_add_`` a part into one zero buffer."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, starts: tuple[int, ...], *rows: torch.Tensor) -> tuple[torch.Tensor, ...]:  # noqa: D102
+        ctx.save_for_backward(*rows)
+        ctx.set_materialize_grads(False)  # a part whose features go unused gets None, not a buffer of zeros to add
+        ctx.starts, ctx.table_shape, ctx.table_dtype = starts, table.shape, table.dtype
+        found = []
+        for start, part in zip(starts, rows):
+            gathered = torch.index_select(_as_elements(table[start:]), 0, part)
+            found.append(torch.view_as_real(gathered) if gathered.is_complex() else gathered)
+        return tuple(found)
+
+    @staticmethod
+    def backward(ctx, *grads: torch.Tensor | None) -> tuple[torch.Tensor | None, ...]:  # noqa: D102
+        rows = ctx.saved_tensors
+        grad_table = None
+        if ctx.needs_input_grad[0]:
+            grad_table = torch.zeros(ctx.table_shape, dtype=ctx.table_dtype, device=rows[0].device)
+            for start, part, grad in zip(ctx.starts, rows, grads):
+                if grad is not None:  # None: that part's features were not used
+                    elements = _as_elements(grad_table[start:])
+                    grad = grad.contiguous()
+                    elements.index_add_(0, part, torch.view_as_complex(grad) if elements.is_complex() else grad)
+        return (grad_table, None, *(None for _ in rows))

@@ -109,19 +109,28 @@ def test_hash_encoding_passes_gradients_to_its_table():
     assert torch.autograd.gradcheck(lambda t: torch.func.functional_call(encoding, {"table": t}, (points,)), (table,))
 
 
-def test_gathering_rows_of_two_as_complex_numbers_equals_index_select_and_its_gradient():
+def test_gathering_rows_in_parts_equals_index_select_and_its_gradient():
+    """Rows of two (complex64/128 on a CPU) and of three, in two parts as the encoding gathers them (the dense levels'
+    rows from the table's first row, the hashed levels' from mid-table): the values and the table's gradient are
+    index_select's, every part's gradient added into one buffer; a part whose features go unused adds nothing."""
     generator = torch.Generator().manual_seed(3)
     for width, dtype in ((2, torch.float32), (2, torch.float64), (3, torch.float32)):
         table = torch.randn(50, width, generator=generator, dtype=dtype, requires_grad=True)
-        rows = torch.randint(0, 40, (200,), generator=generator)  # repeats: the backward must add them up
-        upstream = torch.randn(200, width, generator=generator, dtype=dtype)
-        part = table[10:]  # the hashed levels' part of the table starts mid-storage
-        gathered = gather_rows(part, rows)
-        (grad,) = torch.autograd.grad((gathered * upstream).sum(), table)
-        expected = torch.index_select(part, 0, rows)
-        (expected_grad,) = torch.autograd.grad((expected * upstream).sum(), table)
-        assert gathered.dtype == dtype and torch.equal(gathered, expected)
+        starts = (0, 10)
+        rows = [torch.randint(0, 40, (200,), generator=generator) for _ in starts]  # repeats: the backward must add them up
+        upstream = [torch.randn(200, width, generator=generator, dtype=dtype) for _ in starts]
+        gathered = gather_rows(table, rows, starts)
+        expected = [torch.index_select(table[start:], 0, part) for start, part in zip(starts, rows)]
+        assert all(found.dtype == dtype and torch.equal(found, wanted) for found, wanted in zip(gathered, expected))
+        (grad,) = torch.autograd.grad(sum((found * up).sum() for found, up in zip(gathered, upstream)), table)
+        (expected_grad,) = torch.autograd.grad(sum((wanted * up).sum() for wanted, up in zip(expected, upstream)), table)
+        assert torch.allclose(grad, expected_grad, atol=1e-6)
+        # only the second part used: its rows alone, counted from row 10, have a gradient
+        (grad,) = torch.autograd.grad((gather_rows(table, rows, starts)[1] * upstream[1]).sum(), table)
+        (expected_grad,) = torch.autograd.grad((torch.index_select(table[10:], 0, rows[1]) * upstream[1]).sum(), table)
         assert torch.allclose(grad, expected_grad, atol=1e-6) and bool((grad[:10] == 0).all())
+    with pytest.raises(ValueError, match="a start for each part"):
+        gather_rows(table, rows, (0,))
 
 
 def test_hash_encoding_keeps_leading_axes_and_rejects_wrong_widths():

@@ -53,20 +53,70 @@ def per_part(complex64: bool) -> Callable[[torch.Tensor, list[torch.Tensor], lis
 WAYS = {"one_buffer": hash_grid.gather_rows, "per_part_complex64": per_part(True), "per_part_index_select": per_part(False)}
 
 
-def interleaved(function: Callable[[], object], blocks: int, per_block: int) -> dict[str, float]:
-    """Median seconds of ``function`` under each way of gathering, ``blocks`` alternating blocks of ``per_block`` calls."""
+def interleaved(function: Callable[[], object], ways: dict[str, Callable[[], None]], blocks: int, per_block: int) -> dict[str, float]:
+    """Median seconds of ``function`` under each way, ``blocks`` alternating blocks (ABBA...) of ``per_block`` calls.
+    ``ways`` maps a name to what switches the code to it; the first is switched back to at the end."""
     function()  # warm-up
-    seconds: dict[str, list[float]] = {name: [] for name in WAYS}
-    order = list(WAYS)
+    seconds: dict[str, list[float]] = {name: [] for name in ways}
+    order = list(ways)
     for block in range(blocks):
         for name in order if block % 2 == 0 else order[::-1]:
-            hash_grid.gather_rows = WAYS[name]
+            ways[name]()
             for _ in range(per_block):
                 started = time.perf_counter()
                 function()
                 seconds[name].append(time.perf_counter() - started)
-    hash_grid.gather_rows = WAYS["one_buffer"]
+    ways[order[0]]()
     return {name: round(statistics.median(values), 4) for name, values in seconds.items()}
+
+
+def training_step_of(model: torch.nn.Module, train) -> Callable[[], None]:
+    """A training step of ``model`` on 1024 random rays of the training views ``train``: forward, the sampler's
+    losses against random colours, backward, Adam. The proposal networks learn on their schedule past the warm-up,
+    as most steps do."""
+    origins, directions = image_rays(train.K, train.c2w, train.height, train.width)  # (V, H, W, 3)
+    cameras = torch.arange(len(train))[:, None, None].expand(origins.shape[:3]).reshape(-1)
+    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, eps=1e-15)
+    steps = iter(range(10**9))
+
+    def training_step() -> None:
+        rays = torch.randint(0, len(origins), (1024,))
+        model.sampler.update(1000 + next(steps), model.field)
+        out = model.render(origins[rays], directions[rays], perturb=True, camera_indices=cameras[rays])
+        target = torch.rand(1024, 3)
+        loss = F.mse_loss(out["rgb"], target) + sum(model.sampler.losses(out["samples"], out, target).values())
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    return training_step
+
+
+def time_encodings(ways: dict[str, Callable[[], None]], result: dict) -> None:
+    """Into ``result``: the presets' encodings (``bench_hash_grid.SIZES``), no grad and forward + backward, 8 blocks
+    of 3 under each way."""
+    for name, options, n_points in SIZES:
+        no_grad, forward_backward = encoding_calls(options, n_points)
+        result["seconds_median"][f"{name}_no_grad"] = interleaved(no_grad, ways, 8, 3)
+        result["seconds_median"][f"{name}_forward_backward"] = interleaved(forward_backward, ways, 8, 3)
+        print(name, {key: value for key, value in result["seconds_median"].items() if key.startswith(name)}, flush=True)
+
+
+def time_checkpoint(ckpt: Path, ways: dict[str, Callable[[], None]], result: dict) -> None:
+    """Into ``result``: the checkpoint's training step (12 blocks of 5) and a held-out frame at half size (2 blocks
+    of 1) under each way."""
+    model, info = load_model(ckpt)
+    result["checkpoint"] = str(ckpt.resolve())
+    scene = load_run_data(info["config"]).scene
+    model.train()
+    result["seconds_median"]["training_step_1024_rays"] = interleaved(training_step_of(model, scene.train), ways, 12, 5)
+    model.eval()
+    views = scene.held_out("test").scaled(0.5)
+    result["frame_size"] = [views.width, views.height]
+    result["seconds_median"]["frame_half_size"] = interleaved(
+        lambda: render_view(model, views.K[0], views.c2w[0], views.height, views.width), ways, 2, 1)
+    print({key: result["seconds_median"][key] for key in ("training_step_1024_rays", "frame_half_size")}, flush=True)
 
 
 def main() -> None:
@@ -75,42 +125,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     torch.manual_seed(0)
+    ways = {name: (lambda gather=gather: setattr(hash_grid, "gather_rows", gather)) for name, gather in WAYS.items()}
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
               "seconds_median": {}}
-    for name, options, n_points in SIZES:
-        no_grad, forward_backward = encoding_calls(options, n_points)
-        result["seconds_median"][f"{name}_no_grad"] = interleaved(no_grad, 8, 3)
-        result["seconds_median"][f"{name}_forward_backward"] = interleaved(forward_backward, 8, 3)
-        print(name, {key: value for key, value in result["seconds_median"].items() if key.startswith(name)}, flush=True)
+    time_encodings(ways, result)
     if args.ckpt is not None:
-        model, info = load_model(args.ckpt)
-        result["checkpoint"] = str(args.ckpt.resolve())
-        scene = load_run_data(info["config"]).scene
-        train = scene.train
-        origins, directions = image_rays(train.K, train.c2w, train.height, train.width)  # (V, H, W, 3)
-        cameras = torch.arange(len(train))[:, None, None].expand(origins.shape[:3]).reshape(-1)
-        origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
-        optimizer = torch.optim.Adam(model.parameters(), lr=1e-3, eps=1e-15)
-        model.train()
-        steps = iter(range(10**9))
-
-        def training_step():
-            rays = torch.randint(0, len(origins), (1024,))
-            model.sampler.update(1000 + next(steps), model.field)  # past the proposal networks' warm-up: as most steps
-            out = model.render(origins[rays], directions[rays], perturb=True, camera_indices=cameras[rays])
-            target = torch.rand(1024, 3)
-            loss = F.mse_loss(out["rgb"], target) + sum(model.sampler.losses(out["samples"], out, target).values())
-            optimizer.zero_grad()
-            loss.backward()
-            optimizer.step()
-
-        result["seconds_median"]["training_step_1024_rays"] = interleaved(training_step, 12, 5)
-        model.eval()
-        views = scene.held_out("test").scaled(0.5)
-        result["frame_size"] = [views.width, views.height]
-        result["seconds_median"]["frame_half_size"] = interleaved(
-            lambda: render_view(model, views.K[0], views.c2w[0], views.height, views.width), 2, 1)
-        print({key: result["seconds_median"][key] for key in ("training_step_1024_rays", "frame_half_size")}, flush=True)
+        time_checkpoint(args.ckpt, ways, result)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
 

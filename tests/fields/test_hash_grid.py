@@ -109,6 +109,15 @@ def test_hash_encoding_passes_gradients_to_its_table():
     assert torch.autograd.gradcheck(lambda t: torch.func.functional_call(encoding, {"table": t}, (points,)), (table,))
 
 
+def test_hash_encoding_gradients_with_respect_to_points_are_the_numerical_ones():
+    """Points carry gradients when rays do (camera refinement): through the trilinear weights, for rows of two (summed
+    as complex numbers on a CPU) and of three (summed as real rows)."""
+    for width in (2, 3):
+        encoding = small_encoding(features_per_level=width).double()
+        points = torch.rand(6, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64).requires_grad_(True)
+        assert torch.autograd.gradcheck(encoding, (points,))
+
+
 def test_gathering_rows_in_parts_equals_index_select_and_its_gradient():
     """Rows of two (complex64/128 on a CPU) and of three, in two parts as the encoding gathers them (the dense levels'
     rows from the table's first row, the hashed levels' from mid-table): the values and the table's gradient are

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import platform
 import subprocess
 import sys
@@ -25,7 +24,7 @@ import torch
 import nerf_lightning.fields.hash_grid as hash_grid
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_gather import time_checkpoint, time_encodings  # noqa: E402  the same encodings, blocks, training step and frame
+from bench_gather import time_all  # noqa: E402  the same encodings, blocks, training step and frame
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -53,11 +52,7 @@ def main() -> None:
     ways = {name: (lambda forward=forward: setattr(hash_grid.HashGridEncoding, "forward", forward)) for name, forward in forwards.items()}
     result = {"revision": args.rev, "torch": torch.__version__, "threads": torch.get_num_threads(),
               "machine": platform.processor() or platform.machine(), "seconds_median": {}}
-    time_encodings(ways, result)
-    if args.ckpt is not None:
-        time_checkpoint(args.ckpt, ways, result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    time_all(ways, args.ckpt, args.out, result)
 
 
 if __name__ == "__main__":

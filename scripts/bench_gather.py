@@ -103,6 +103,15 @@ def time_encodings(ways: dict[str, Callable[[], None]], result: dict) -> None:
         print(name, {key: value for key, value in result["seconds_median"].items() if key.startswith(name)}, flush=True)
 
 
+def time_all(ways: dict[str, Callable[[], None]], ckpt: Path | None, out: Path, result: dict) -> None:
+    """The encodings and, given ``ckpt``, its training step and frame under each way, into ``result``, written to ``out``."""
+    time_encodings(ways, result)
+    if ckpt is not None:
+        time_checkpoint(ckpt, ways, result)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+
+
 def time_checkpoint(ckpt: Path, ways: dict[str, Callable[[], None]], result: dict) -> None:
     """Into ``result``: the checkpoint's training step (12 blocks of 5) and a held-out frame at half size (2 blocks
     of 1) under each way."""
@@ -128,11 +137,7 @@ def main() -> None:
     ways = {name: (lambda gather=gather: setattr(hash_grid, "gather_rows", gather)) for name, gather in WAYS.items()}
     result = {"torch": torch.__version__, "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
               "seconds_median": {}}
-    time_encodings(ways, result)
-    if args.ckpt is not None:
-        time_checkpoint(args.ckpt, ways, result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    time_all(ways, args.ckpt, args.out, result)
 
 
 if __name__ == "__main__":

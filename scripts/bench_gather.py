@@ -1,14 +1,16 @@
 """The hash grid's row gather on a CPU, three ways in one process, interleaved: ``gather_rows`` (rows of two float32
 gathered as complex64 elements, the dense and the hashed levels' parts' gradients added into one buffer), the same
-through autograd a part (``per_part_complex64``: a buffer the table's size a part, added up; the code before
-2026-11-24's last change) and a plain ``index_select`` a part. Times the encoding at the presets' sizes (no grad,
-forward + backward) and, given a checkpoint, a training step of its model (forward, backward and Adam on random rays
-of its training views) and a held-out frame at half size. Medians, fixed seed, JSON out.
+through autograd a part (``per_part_complex64``: a buffer for each part and one of the table's size for a slice, added
+up; the code before 2c74162) and a plain ``index_select`` a part. Only the gather differs: the corner sums are the
+encoding's own. Times the encoding at the presets' sizes (no grad, forward + backward) and, given a checkpoint, a
+training step of its model (forward, backward and Adam on random rays of its training views) and a held-out frame at
+half size. Medians, fixed seed, JSON out.
 
-    .venv/bin/python scripts/bench_gather.py --ckpt <run>/checkpoints/last.ckpt --out docs/bench/hash_gather_cpu.json
+    .venv/bin/python scripts/bench_gather.py --ckpt <run>/checkpoints/last.ckpt --out docs/bench/hash_gather_parts_cpu.json
 
-The two ways alternate in blocks (ABBA...), so that a machine whose speed drifts, as a shared VM's does, weighs on
-both alike; a separate run of each, minutes apart, can differ by more than the gain.
+The ways alternate in blocks (ABC CBA ...), so that a machine whose speed drifts, as a shared VM's does, weighs on
+all alike; a separate run of each, minutes apart, can differ by more than the gain. (docs/bench/hash_gather_cpu.json
+is the two-way version of 2026-11-23.)
 """
 
 from __future__ import annotations

@@ -123,10 +123,11 @@ class HashGridEncoding(nn.Module):
         features = []
         for (levels, _), part, found in zip(parts, rows, corner_features):
             corner_weights = weights[..., levels, :]  # (2, 2, 2, n, M)
-            if _as_elements(found).is_complex():
-                # rows of two as complex numbers, as gathered: the weighted sum's product has no trailing axis of 2 to
-                # broadcast over; forward + backward 19 to 26 % faster for the CPU presets' field, 29 to 39 % for a
-                # proposal grid, a training step 8 % (docs/benchmarks.md); the values and gradients are the same
+            if _as_elements(found).is_complex() and torch.is_grad_enabled():
+                # in training, rows of two as complex numbers, as gathered: the weighted sum's product has no trailing
+                # axis of 2 to broadcast over; forward + backward 19 to 26 % faster for the CPU presets' field, 29 to
+                # 39 % for a proposal grid, a training step 8 % (docs/benchmarks.md); the values and gradients are the
+                # same. Without gradients the complex product was no faster: evaluation keeps the real one
                 found = torch.view_as_complex(found).view(part.shape)
                 features.append(torch.view_as_real((corner_weights * found).sum(dim=(0, 1, 2))))  # (n, M, 2)
             else:
@@ -141,8 +142,9 @@ def gather_rows(table: torch.Tensor, rows: Sequence[torch.Tensor], starts: Seque
     -> each part's (K_i, F) features, ``table[starts[i]:][rows[i]]``, differentiable in ``table``.
 
     The backward adds every part's gradient into one (T, F) buffer. Autograd, given one ``index_select`` a part, would
-    make a buffer of the whole table's size for each part (and another for a part's slice) and add them up: fresh
-    memory to zero and add, a ``nerfacto_forward_cpu`` training step on a CPU 3 to 12 % slower (docs/benchmarks.md).
+    make a zero buffer for each (the part's size), another of the whole table's size for a part taken as a slice of
+    it, and add them up: fresh memory to zero and add, a ``nerfacto_forward_cpu`` training step on a CPU 3 to 12 %
+    slower (docs/benchmarks.md).
     On a CPU, rows of two float32 (Instant-NGP's and nerfacto's F = 2) are gathered and scattered as single complex64
     elements: PyTorch's CPU ``index_select`` and ``index_add`` move one 8-byte element a row faster than a row of two
     floats (the encoding's forward + backward 11 to 25 % faster). The values are the same."""

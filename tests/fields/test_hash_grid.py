@@ -118,6 +118,17 @@ def test_hash_encoding_gradients_with_respect_to_points_are_the_numerical_ones()
         assert torch.autograd.gradcheck(encoding, (points,))
 
 
+def test_hash_encoding_sums_corners_alike_with_and_without_gradients():
+    """In float32 on a CPU, training sums the corners of rows of two as complex numbers, evaluation as real rows: the
+    same features to float32 rounding."""
+    encoding = small_encoding()
+    points = torch.rand(300, 3, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        evaluated = encoding(points)
+    trained = encoding(points)
+    assert trained.requires_grad and torch.allclose(trained, evaluated, atol=1e-6, rtol=1e-5)
+
+
 def test_gathering_rows_in_parts_equals_index_select_and_its_gradient():
     """Rows of two (complex64/128 on a CPU) and of three, in two parts as the encoding gathers them (the dense levels'
     rows from the table's first row, the hashed levels' from mid-table): the values and the table's gradient are

@@ -123,7 +123,7 @@ class HashGridEncoding(nn.Module):
         features = []
         for (levels, _), part, found in zip(parts, rows, corner_features):
             corner_weights = weights[..., levels, :]  # (2, 2, 2, n, M)
-            if _as_elements(found).is_complex() and torch.is_grad_enabled():
+            if _complex_rows(found) and torch.is_grad_enabled():
                 # in training, rows of two as complex numbers, as gathered: the weighted sum's product has no trailing
                 # axis of 2 to broadcast over; forward + backward 19 to 26 % faster for the CPU presets' field, 29 to
                 # 39 % for a proposal grid, a training step 8 % (docs/benchmarks.md); the values and gradients are the
@@ -153,11 +153,14 @@ def gather_rows(table: torch.Tensor, rows: Sequence[torch.Tensor], starts: Seque
     return list(_GatherRows.apply(table, tuple(int(start) for start in starts), *rows))
 
 
+def _complex_rows(table: torch.Tensor) -> bool:
+    """Whether (T, F) rows are gathered (and summed in training) as complex elements: rows of two floats on a CPU."""
+    return table.device.type == "cpu" and table.shape[-1] == 2 and table.dtype in (torch.float32, torch.float64)
+
+
 def _as_elements(table: torch.Tensor) -> torch.Tensor:
     """(T, F) -> the tensor whose dim-0 elements are gathered: (T,) complex64/128 for rows of two floats on a CPU."""
-    if table.device.type == "cpu" and table.shape[-1] == 2 and table.dtype in (torch.float32, torch.float64):
-        return torch.view_as_complex(table)
-    return table
+    return torch.view_as_complex(table) if _complex_rows(table) else table
 
 
 class _GatherRows(torch.autograd.Function):

@@ -1,12 +1,14 @@
 """The hash-grid encoding against a plain-loop reference, the spherical harmonics, and the hash-grid field."""
 
 import math
+import warnings
 
 import pytest
 import torch
 
+from nerf_lightning.compiling import CompiledOrEager
 from nerf_lightning.fields import GridField, HashGridEncoding, SphericalHarmonicsEncoding, TensorVMEncoding
-from nerf_lightning.fields.hash_grid import gather_rows, level_resolutions
+from nerf_lightning.fields.hash_grid import _compiled_interpolation, gather_rows, interpolate_corners, level_resolutions
 
 
 def hash_grid_field(aabb, **encoding) -> GridField:
@@ -119,14 +121,50 @@ def test_hash_encoding_gradients_with_respect_to_points_are_the_numerical_ones()
 
 
 def test_hash_encoding_sums_corners_alike_with_and_without_gradients():
-    """In float32 on a CPU, training sums the corners of rows of two as complex numbers, evaluation as real rows: the
+    """In float32 on a CPU, training sums the corners of rows of two as complex numbers, evaluation as real rows
+    (``compile_evaluation=False``) or corner by corner (:func:`interpolate_corners`, compiled where it can be): the
     same features to float32 rounding."""
     encoding = small_encoding()
     points = torch.rand(300, 3, generator=torch.Generator().manual_seed(5))
-    with torch.no_grad():
-        evaluated = encoding(points)
     trained = encoding(points)
-    assert trained.requires_grad and torch.allclose(trained, evaluated, atol=1e-6, rtol=1e-5)
+    assert trained.requires_grad
+    for compiled in (False, True):
+        encoding.compile_evaluation = compiled
+        with torch.no_grad():
+            evaluated = encoding(points)
+        assert torch.allclose(trained, evaluated, atol=1e-6, rtol=1e-5), compiled
+
+
+def test_corner_by_corner_interpolation_equals_the_plain_loop_reference():
+    """:func:`interpolate_corners` as written (eagerly) and through torch.compile, with the encoding's state: the
+    paper's features, dense and hashed levels, the far corner included."""
+    encoding = small_encoding().double()
+    points = torch.rand(40, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    points[0] = torch.tensor([1.0, 1.0, 1.0])
+    expected = torch.tensor([reference_encoding(encoding, p.tolist()) for p in points], dtype=torch.float64)
+    state = (encoding.table.detach(), encoding.resolutions, encoding.hashed, encoding.offsets, encoding.hash_primes, encoding.hash_mask)
+    torch.testing.assert_close(interpolate_corners(points, *state), expected, rtol=1e-9, atol=1e-9)
+    with torch.no_grad():
+        torch.testing.assert_close(encoding(points.reshape(4, 10, 3)), expected.reshape(4, 10, 8), rtol=1e-9, atol=1e-9)
+    if _compiled_interpolation.failure is None:  # this machine compiles: evaluation ran the compiled code
+        assert _compiled_interpolation.compiled is not None
+
+
+def test_a_failing_compiler_leaves_plain_pytorch_with_one_warning(monkeypatch):
+    """No C++ compiler (torch.compile raising at the first call): one warning naming what and why, then the function
+    itself, call after call."""
+    def broken_compile(function, **options):
+        def compiled(*args):
+            raise RuntimeError("InvalidCxxCompiler: no working C++ compiler found\nmore detail")
+        return compiled
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    twice = CompiledOrEager(lambda x: 2 * x, "doubling")
+    with pytest.warns(UserWarning, match=r"doubling \(RuntimeError: InvalidCxxCompiler: no working C\+\+ compiler found\)"):
+        assert twice(torch.tensor(3.0)) == 6.0
+    assert twice.failure.startswith("RuntimeError")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert twice(torch.tensor(4.0)) == 8.0
 
 
 def test_gathering_rows_in_parts_equals_index_select_and_its_gradient():

@@ -1,0 +1,41 @@
+"""``torch.compile`` where this machine can run it, plain PyTorch where it cannot.
+
+On a CPU, inductor turns a function into C++ that it builds with the system's compiler (g++ or clang) the first time
+the function runs, and caches on disk. A machine without one (a fresh Windows or macOS install), or a platform
+inductor does not support, raises at that first call: :class:`CompiledOrEager` then warns once and runs the
+function as written from then on, so that nothing but speed depends on the compiler.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+
+class CompiledOrEager:
+    """``function`` through ``torch.compile(dynamic=True)`` (its shapes change from call to call: packed samples),
+    compiled at its first call; ``function`` itself for the rest of the process once compiling or running the
+    compiled code has failed (one warning naming ``what`` and the error).
+
+    ``failure`` is None, or the error that turned compilation off."""
+
+    def __init__(self, function: Callable[..., Any], what: str) -> None:
+        self.function, self.what = function, what
+        self.compiled: Callable[..., Any] | None = None
+        self.failure: str | None = None
+
+    def __call__(self, *args: Any) -> Any:
+        if self.failure is None:
+            try:
+                if self.compiled is None:
+                    self.compiled = torch.compile(self.function, dynamic=True)
+                return self.compiled(*args)
+            except Exception as error:  # noqa: BLE001 - any failure of the compiler leaves the plain function to run
+                lines = str(error).strip().splitlines()
+                self.failure = f"{type(error).__name__}: {lines[0] if lines else ''}"
+                warnings.warn(f"torch.compile failed for {self.what} ({self.failure}); running it in plain PyTorch "
+                              f"instead, slower (a C++ compiler, g++ or clang, on the PATH lets it compile)", stacklevel=2)
+        return self.function(*args)

@@ -8,11 +8,14 @@ function as written from then on, so that nothing but speed depends on the compi
 
 from __future__ import annotations
 
+import logging
 import warnings
 from collections.abc import Callable
 from typing import Any
 
 import torch
+
+log = logging.getLogger(__name__)
 
 
 class CompiledOrEager:
@@ -31,6 +34,7 @@ class CompiledOrEager:
         if self.failure is None:
             try:
                 if self.compiled is None:
+                    log.info("compiling %s with torch.compile: the first call takes a while (seconds once cached on disk)", self.what)
                     self.compiled = torch.compile(self.function, dynamic=True)
                 return self.compiled(*args)
             except Exception as error:  # noqa: BLE001 - any failure of the compiler leaves the plain function to run

@@ -21,7 +21,8 @@ log = logging.getLogger(__name__)
 class CompiledOrEager:
     """``function`` through ``torch.compile(dynamic=True)`` (its shapes change from call to call: packed samples),
     compiled at its first call; ``function`` itself for the rest of the process once compiling or running the
-    compiled code has failed (one warning naming ``what`` and the error).
+    compiled code has failed where ``function`` itself runs (one warning naming ``what`` and the error). Where
+    ``function`` fails too, its own error is raised and compiling stays on.
 
     ``failure`` is None, or the error that turned compilation off."""
 
@@ -37,9 +38,13 @@ class CompiledOrEager:
                     log.info("compiling %s with torch.compile: the first call takes a while (seconds once cached on disk)", self.what)
                     self.compiled = torch.compile(self.function, dynamic=True)
                 return self.compiled(*args)
-            except Exception as error:  # noqa: BLE001 - any failure of the compiler leaves the plain function to run
+            except Exception as error:  # noqa: BLE001 - the plain function decides whether it was the compiler's fault
+                # an error of the input itself (a bad shape, out of memory) raises again here, as the function's own,
+                # and leaves compiling on; only a call that runs plainly turns it off
+                result = self.function(*args)
                 lines = str(error).strip().splitlines()
                 self.failure = f"{type(error).__name__}: {lines[0] if lines else ''}"
-                warnings.warn(f"torch.compile failed for {self.what} ({self.failure}); running it in plain PyTorch "
-                              f"instead, slower (a C++ compiler, g++ or clang, on the PATH lets it compile)", stacklevel=2)
+                warnings.warn(f"torch.compile failed for {self.what} ({self.failure}); running it in plain PyTorch from now "
+                              f"on, slower (inductor needs a working C++ compiler, g++ or clang, on the PATH)", stacklevel=2)
+                return result
         return self.function(*args)

@@ -39,7 +39,7 @@ def best_ms(function, repeats: int = 7) -> float:
 def encoding_calls(options: dict, n_points: int) -> tuple[Callable[[], None], Callable[[], None], Callable[[], None]]:
     """A ``HashGridEncoding(**options)`` and ``n_points`` random points -> the calls timed: its no-grad forward in
     plain PyTorch and compiled, and a forward + backward (into the table's gradient)."""
-    encoding, points = hash_grid.HashGridEncoding(**options), torch.rand(n_points, 3)
+    encoding, points = hash_grid.HashGridEncoding(**options).eval(), torch.rand(n_points, 3)  # eval mode: as renders run it
 
     def no_grad(compiled: bool) -> Callable[[], None]:
         def forward() -> None:

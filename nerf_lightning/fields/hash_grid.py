@@ -42,9 +42,10 @@ class HashGridEncoding(nn.Module):
         log2_table_size: log2 of T, the most rows a level's table has.
         base_resolution, max_resolution: cells a side of the coarsest and the finest level.
         init_scale: features start uniform in (-init_scale, init_scale), as in Instant-NGP.
-        compile_evaluation: on a CPU, without gradients (renders, evaluation, the viewer), run the encoding through
-            ``torch.compile`` (:func:`interpolate_corners`; a fern frame 1.4x faster on 2 cores, docs/benchmarks.md),
-            falling back to plain PyTorch with a warning where this machine cannot compile.
+        compile_evaluation: on a CPU, without gradients (renders, evaluation, the viewer, and training's passes that
+            need none), run the encoding through ``torch.compile`` (:func:`interpolate_corners`; a fern frame 1.5x
+            faster on 2 cores, a fern training step 17 % faster; docs/benchmarks.md), falling back to plain PyTorch
+            with a warning where this machine cannot compile.
 
     ``forward``: (..., 3) points in [0, 1] (clamped) -> (..., L * F), level by level.
     """
@@ -112,13 +113,21 @@ class HashGridEncoding(nn.Module):
         x = x + self.offsets[: self.n_dense, None]
         return (x[:, None] + y[None, :] * side)[:, :, None] + z[None, None, :] * (side * side)
 
+    def evaluates_compiled(self, points: torch.Tensor) -> bool:
+        """Whether (M, 3) points go through the compiled :func:`interpolate_corners`: ``compile_evaluation``, without
+        gradients (renders, validation, the viewer, meshes, the proposal networks' bakes; in training, the proposal
+        networks' passes on the steps they do not learn and the occupancy grid's refreshes), on a CPU, more than one
+        point (sizes 0 and 1 would compile anew)."""
+        return (self.compile_evaluation and not torch.is_grad_enabled() and points.device.type == "cpu"
+                and points.shape[0] > 1)
+
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) points in [0, 1] -> (..., L * F)"""
         if points.shape[-1] != 3:
             raise ValueError(f"HashGridEncoding expected (..., 3) points, got {tuple(points.shape)}")
         lead = points.shape[:-1]
         points = points.reshape(-1, 3).clamp(0.0, 1.0)
-        if self.compile_evaluation and points.device.type == "cpu" and not torch.is_grad_enabled():
+        if self.evaluates_compiled(points):
             # the table detached: a plain tensor, whose size the compiled code takes as a variable (torch.compile keeps
             # a parameter's sizes fixed, and would compile again for every table size: the proposal networks', the field's)
             features = _compiled_interpolation(points, self.table.detach(), self.resolutions, self.hashed, self.offsets,
@@ -163,7 +172,7 @@ def interpolate_corners(points: torch.Tensor, table: torch.Tensor, resolutions: 
     first rows ``offsets``; the (3,) ``primes`` and the 0-d ``mask`` T - 1. The same values as the encoding's batched
     forward, which lays all 8 corners' rows, weights and features out as (8, L, M) tensors, each a pass through
     memory; written corner by corner, inductor fuses the rows, the gather and the weighted sum into one loop over
-    the points (the fern preset's field encoding 2.6x faster on 2 CPU cores, docs/benchmarks.md). Eagerly it is
+    the points (a fern frame's encoding 2.5x faster on 2 CPU cores: 3.6 against 8.9 s, docs/benchmarks.md). Eagerly it is
     about as fast as the batched forward."""
     resolutions = resolutions.to(points)[:, None]  # (L, 1)
     scaled = points.t()[:, None, :] * resolutions  # (3, L, M) in cell units
@@ -180,7 +189,7 @@ def interpolate_corners(points: torch.Tensor, table: torch.Tensor, resolutions: 
         weight = ((fraction[0] if dx else 1.0 - fraction[0]) * (fraction[1] if dy else 1.0 - fraction[1])
                   * (fraction[2] if dz else 1.0 - fraction[2]))  # (L, M)
         features = features + weight[..., None] * table[rows]
-    return features.transpose(0, 1).reshape(points.shape[0], -1)
+    return features.transpose(0, 1).reshape(points.shape[0], features.shape[0] * features.shape[2])
 
 
 _compiled_interpolation = CompiledOrEager(interpolate_corners, "the hash grid's encoding")

@@ -1,6 +1,7 @@
 """The hash-grid encoding against a plain-loop reference, the spherical harmonics, and the hash-grid field."""
 
 import math
+import shutil
 import warnings
 
 import pytest
@@ -8,7 +9,8 @@ import torch
 
 from nerf_lightning.compiling import CompiledOrEager
 from nerf_lightning.fields import GridField, HashGridEncoding, SphericalHarmonicsEncoding, TensorVMEncoding
-from nerf_lightning.fields.hash_grid import _compiled_interpolation, gather_rows, interpolate_corners, level_resolutions
+from nerf_lightning.fields import hash_grid
+from nerf_lightning.fields.hash_grid import gather_rows, interpolate_corners, level_resolutions
 
 
 def hash_grid_field(aabb, **encoding) -> GridField:
@@ -128,6 +130,7 @@ def test_hash_encoding_sums_corners_alike_with_and_without_gradients():
     points = torch.rand(300, 3, generator=torch.Generator().manual_seed(5))
     trained = encoding(points)
     assert trained.requires_grad
+    encoding.eval()
     for compiled in (False, True):
         encoding.compile_evaluation = compiled
         with torch.no_grad():
@@ -135,10 +138,15 @@ def test_hash_encoding_sums_corners_alike_with_and_without_gradients():
         assert torch.allclose(trained, evaluated, atol=1e-6, rtol=1e-5), compiled
 
 
+def has_cxx_compiler() -> bool:
+    return any(shutil.which(name) for name in ("g++", "clang++", "c++"))
+
+
 def test_corner_by_corner_interpolation_equals_the_plain_loop_reference():
     """:func:`interpolate_corners` as written (eagerly) and through torch.compile, with the encoding's state: the
-    paper's features, dense and hashed levels, the far corner included."""
-    encoding = small_encoding().double()
+    paper's features, dense and hashed levels, the far corner included. Where this machine has a C++ compiler, the
+    evaluation really ran compiled."""
+    encoding = small_encoding().double().eval()
     points = torch.rand(40, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     points[0] = torch.tensor([1.0, 1.0, 1.0])
     expected = torch.tensor([reference_encoding(encoding, p.tolist()) for p in points], dtype=torch.float64)
@@ -146,19 +154,57 @@ def test_corner_by_corner_interpolation_equals_the_plain_loop_reference():
     torch.testing.assert_close(interpolate_corners(points, *state), expected, rtol=1e-9, atol=1e-9)
     with torch.no_grad():
         torch.testing.assert_close(encoding(points.reshape(4, 10, 3)), expected.reshape(4, 10, 8), rtol=1e-9, atol=1e-9)
-    if _compiled_interpolation.failure is None:  # this machine compiles: evaluation ran the compiled code
-        assert _compiled_interpolation.compiled is not None
+    if has_cxx_compiler():
+        assert hash_grid._compiled_interpolation.failure is None and hash_grid._compiled_interpolation.compiled is not None
+
+
+def test_only_passes_without_gradients_on_the_cpu_go_through_the_compiled_interpolation(monkeypatch):
+    """Gradients, ``compile_evaluation=False`` and sizes 0 and 1 take the batched forward; a pass without gradients
+    (evaluation, or a proposal network's pass on a step it does not learn) takes :func:`interpolate_corners` (here a
+    spy running it eagerly), the same features."""
+    calls = []
+
+    def spy(*args):
+        calls.append(args[0].shape[0])
+        return interpolate_corners(*args)
+
+    monkeypatch.setattr(hash_grid, "_compiled_interpolation", spy)
+    encoding = small_encoding()
+    points = torch.rand(50, 3, generator=torch.Generator().manual_seed(3))
+    batched = encoding(points).detach()  # gradients on
+    encoding.eval()
+    encoding(points)
+    encoding.compile_evaluation = False
+    with torch.no_grad():
+        encoding(points)
+    assert calls == []
+    encoding.compile_evaluation = True
+    with torch.no_grad():
+        torch.testing.assert_close(encoding(points.reshape(5, 10, 3)), batched.reshape(5, 10, 8), atol=1e-6, rtol=1e-5)
+        assert encoding(points[:1]).shape == (1, 8) and encoding(torch.zeros(0, 3)).shape == (0, 8)
+        encoding.train()
+        encoding(points[:20])
+    assert calls == [50, 20]
 
 
 def test_a_failing_compiler_leaves_plain_pytorch_with_one_warning(monkeypatch):
     """No C++ compiler (torch.compile raising at the first call): one warning naming what and why, then the function
-    itself, call after call."""
+    itself, call after call. An input the function itself refuses raises the function's error, compiling left on."""
     def broken_compile(function, **options):
         def compiled(*args):
             raise RuntimeError("InvalidCxxCompiler: no working C++ compiler found\nmore detail")
         return compiled
     monkeypatch.setattr(torch, "compile", broken_compile)
-    twice = CompiledOrEager(lambda x: 2 * x, "doubling")
+
+    def double(x: torch.Tensor) -> torch.Tensor:
+        if x.ndim:
+            raise ValueError("double expected a 0-d tensor")
+        return 2 * x
+
+    twice = CompiledOrEager(double, "doubling")
+    with pytest.raises(ValueError, match="double expected a 0-d tensor"):
+        twice(torch.ones(2))
+    assert twice.failure is None
     with pytest.warns(UserWarning, match=r"doubling \(RuntimeError: InvalidCxxCompiler: no working C\+\+ compiler found\)"):
         assert twice(torch.tensor(3.0)) == 6.0
     assert twice.failure.startswith("RuntimeError")

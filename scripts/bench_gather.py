@@ -56,8 +56,15 @@ WAYS = {"one_buffer": hash_grid.gather_rows, "per_part_complex64": per_part(True
 
 
 def interleaved(function: Callable[[], object], ways: dict[str, Callable[[], None]], blocks: int, per_block: int) -> dict[str, float]:
-    """Median seconds of ``function`` under each way, ``blocks`` alternating blocks (ABBA...) of ``per_block`` calls.
-    ``ways`` maps a name to what switches the code to it; the first is switched back to at the end."""
+    """Median seconds of ``function`` under each way (:func:`interleaved_seconds`)."""
+    return {name: round(statistics.median(values), 4) for name, values in interleaved_seconds(function, ways, blocks, per_block).items()}
+
+
+def interleaved_seconds(function: Callable[[], object], ways: dict[str, Callable[[], None]], blocks: int,
+                        per_block: int) -> dict[str, list[float]]:
+    """The seconds of each call of ``function`` under each way, ``blocks`` alternating blocks (ABBA...) of
+    ``per_block`` calls after one warm-up call. ``ways`` maps a name to what switches the code to it; the first is
+    switched back to at the end."""
     function()  # warm-up
     seconds: dict[str, list[float]] = {name: [] for name in ways}
     order = list(ways)
@@ -69,7 +76,7 @@ def interleaved(function: Callable[[], object], ways: dict[str, Callable[[], Non
                 function()
                 seconds[name].append(time.perf_counter() - started)
     ways[order[0]]()
-    return {name: round(statistics.median(values), 4) for name, values in seconds.items()}
+    return seconds
 
 
 def training_step_of(model: torch.nn.Module, train) -> Callable[[], None]:
@@ -99,7 +106,7 @@ def time_encodings(ways: dict[str, Callable[[], None]], result: dict) -> None:
     """Into ``result``: the presets' encodings (``bench_hash_grid.SIZES``), no grad and forward + backward, 8 blocks
     of 3 under each way."""
     for name, options, n_points in SIZES:
-        no_grad, forward_backward = encoding_calls(options, n_points)
+        no_grad, _, forward_backward = encoding_calls(options, n_points)  # no grad as written: the compiled one gathers its own way
         result["seconds_median"][f"{name}_no_grad"] = interleaved(no_grad, ways, 8, 3)
         result["seconds_median"][f"{name}_forward_backward"] = interleaved(forward_backward, ways, 8, 3)
         print(name, {key: value for key, value in result["seconds_median"].items() if key.startswith(name)}, flush=True)
@@ -116,8 +123,12 @@ def time_all(ways: dict[str, Callable[[], None]], ckpt: Path | None, out: Path, 
 
 def time_checkpoint(ckpt: Path, ways: dict[str, Callable[[], None]], result: dict) -> None:
     """Into ``result``: the checkpoint's training step (12 blocks of 5) and a held-out frame at half size (2 blocks
-    of 1) under each way."""
+    of 1) under each way, the encodings' passes without gradients as written (``compile_evaluation`` off: the
+    compiled one gathers its own way)."""
     model, info = load_model(ckpt)
+    for module in model.modules():
+        if hasattr(module, "compile_evaluation"):
+            module.compile_evaluation = False
     result["checkpoint"] = str(ckpt.resolve())
     scene = load_run_data(info["config"]).scene
     model.train()

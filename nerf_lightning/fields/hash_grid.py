@@ -44,7 +44,7 @@ class HashGridEncoding(nn.Module):
         init_scale: features start uniform in (-init_scale, init_scale), as in Instant-NGP.
         compile_evaluation: on a CPU, without gradients (renders, evaluation, the viewer, and training's passes that
             need none), run the encoding through ``torch.compile`` (:func:`interpolate_corners`; a fern frame 1.5x
-            faster on 2 cores, a fern training step 17 % faster; docs/benchmarks.md), falling back to plain PyTorch
+            faster on 2 cores, a fern training step faster; docs/benchmarks.md), falling back to plain PyTorch
             with a warning where this machine cannot compile.
 
     ``forward``: (..., 3) points in [0, 1] (clamped) -> (..., L * F), level by level.
@@ -133,10 +133,7 @@ class HashGridEncoding(nn.Module):
             features = _compiled_interpolation(points, self.table.detach(), self.resolutions, self.hashed, self.offsets,
                                                self.hash_primes, self.hash_mask)
             return features.reshape(*lead, self.out_dim)
-        resolutions = self.resolutions.to(points)[:, None]  # (L, 1)
-        scaled = points.t()[:, None, :] * resolutions  # (3, L, M) in cell units, the points innermost
-        lower = torch.minimum(scaled.floor(), resolutions - 1.0)  # the last cell keeps x = 1 inside
-        fraction = scaled - lower  # (3, L, M) in [0, 1]
+        lower, fraction = cells_of(points, self.resolutions)  # (3, L, M) each, the points innermost
         # trilinear weights (2, 2, 2, L, M), indexed by (dx, dy, dz): the product of (1 - f, f) along each axis
         w = torch.stack([1.0 - fraction, fraction])  # (2, 3, L, M)
         weights = w[:, None, None, 0] * w[None, :, None, 1] * w[None, None, :, 2]
@@ -174,22 +171,29 @@ def interpolate_corners(points: torch.Tensor, table: torch.Tensor, resolutions: 
     memory; written corner by corner, inductor fuses the rows, the gather and the weighted sum into one loop over
     the points (a fern frame's encoding 2.5x faster on 2 CPU cores: 3.6 against 8.9 s, docs/benchmarks.md). Eagerly it is
     about as fast as the batched forward."""
-    resolutions = resolutions.to(points)[:, None]  # (L, 1)
-    scaled = points.t()[:, None, :] * resolutions  # (3, L, M) in cell units
-    lower = torch.minimum(scaled.floor(), resolutions - 1.0)  # the last cell keeps x = 1 inside
-    fraction = scaled - lower  # (3, L, M) in [0, 1]
+    lower, fraction = cells_of(points, resolutions)  # (3, L, M) each
     x, y, z = lower.long()  # (L, M) each
-    side = resolutions.long() + 1  # (L, 1) vertices a side
+    side = resolutions.long()[:, None] + 1  # (L, 1) vertices a side
+    hashed, first_rows = hashed[:, None], offsets.long()[:, None]  # (L, 1) each
     features = torch.zeros(*x.shape, table.shape[-1], dtype=table.dtype, device=table.device)  # (L, M, F)
     for dx, dy, dz in itertools.product((0, 1), repeat=3):
         cx, cy, cz = x + dx, y + dy, z + dz
         dense = cx + (cy + cz * side) * side
         hashed_rows = ((cx * primes[0]) ^ (cy * primes[1]) ^ (cz * primes[2])) & mask
-        rows = torch.where(hashed[:, None], hashed_rows, dense) + offsets[:, None].long()  # (L, M)
+        rows = torch.where(hashed, hashed_rows, dense) + first_rows  # (L, M)
         weight = ((fraction[0] if dx else 1.0 - fraction[0]) * (fraction[1] if dy else 1.0 - fraction[1])
                   * (fraction[2] if dz else 1.0 - fraction[2]))  # (L, M)
         features = features + weight[..., None] * table[rows]
     return features.transpose(0, 1).reshape(points.shape[0], features.shape[0] * features.shape[2])
+
+
+def cells_of(points: torch.Tensor, resolutions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M, 3) points in [0, 1], the levels' (L,) cells a side -> the lower corners of the points' cells and the points'
+    fractions across them, (3, L, M) floats each in cell units, the points innermost."""
+    resolutions = resolutions.to(points)[:, None]  # (L, 1)
+    scaled = points.t()[:, None, :] * resolutions  # (3, L, M) in cell units
+    lower = torch.minimum(scaled.floor(), resolutions - 1.0)  # the last cell keeps x = 1 inside
+    return lower, scaled - lower  # fractions in [0, 1]
 
 
 _compiled_interpolation = CompiledOrEager(interpolate_corners, "the hash grid's encoding")

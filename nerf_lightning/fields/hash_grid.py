@@ -44,7 +44,7 @@ class HashGridEncoding(nn.Module):
         init_scale: features start uniform in (-init_scale, init_scale), as in Instant-NGP.
         compile_evaluation: on a CPU, without gradients (renders, evaluation, the viewer, and training's passes that
             need none), run the encoding through ``torch.compile`` (:func:`interpolate_corners`; a fern frame 1.5x
-            faster on 2 cores, a fern training step faster; docs/benchmarks.md), falling back to plain PyTorch
+            faster on 2 cores, a fern training step 10 % faster; docs/benchmarks.md), falling back to plain PyTorch
             with a warning where this machine cannot compile.
 
     ``forward``: (..., 3) points in [0, 1] (clamped) -> (..., L * F), level by level.

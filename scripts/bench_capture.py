@@ -27,10 +27,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_nerf import train_preset  # noqa: E402
 
-from nerf_lightning.evaluation import evaluate_checkpoint  # noqa: E402
+from nerf_lightning.outputs.evaluation import evaluate_checkpoint  # noqa: E402
 from nerf_lightning.plots import plot_psnr_curves  # noqa: E402
 from nerf_lightning.checkpoints import load_model  # noqa: E402
-from nerf_lightning.rendering.views import render_camera_path  # noqa: E402
+from nerf_lightning.outputs.frames import render_camera_path  # noqa: E402
 
 
 def plot_comparison(runs: list[dict], path: Path, scene: str) -> Path:
@@ -78,7 +78,7 @@ def main() -> None:
                       "seconds_per_view": round((time.perf_counter() - started) / evaluated["views"], 2)}
 
     started = time.perf_counter()
-    model, info = load_model(ckpt, kind="radiance_field")
+    model, info = load_model(ckpt)
     render_camera_path(model, info["config"], run_dir / "spiral", "spiral", args.frames, args.render_scale)
     result["spiral"] = {"frames": args.frames, "scale": args.render_scale, "seconds_per_frame": round((time.perf_counter() - started) / args.frames, 3),
                         "rgb_gif": str(run_dir / "spiral" / "rgb.gif"), "depth_gif": str(run_dir / "spiral" / "depth.gif")}

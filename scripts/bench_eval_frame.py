@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 
 from nerf_lightning.checkpoints import load_model
-from nerf_lightning.evaluation import views_to_evaluate
-from nerf_lightning.rendering.views import render_view
+from nerf_lightning.outputs.evaluation import views_to_evaluate
+
 
 
 def timed(seconds: dict[str, float], obj: object, name: str, part: str) -> None:
@@ -45,7 +45,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2, help="frames timed each way after the first")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
-    model, info = load_model(args.ckpt, kind="radiance_field", command="bench_eval_frame")
+    model, info = load_model(args.ckpt)
     views = views_to_evaluate(model, info["config"])
     encodings = [module for module in model.modules() if hasattr(module, "compile_evaluation")]
     if not encodings:
@@ -60,7 +60,7 @@ def main() -> None:
             encoding.compile_evaluation = compiled
         seconds.clear()
         started = time.perf_counter()
-        rgb = render_view(model, views.K[0], views.c2w[0], views.height, views.width)["rgb"]
+        rgb = model.render_view(views.K[0], views.c2w[0], views.height, views.width)["rgb"]
         total = time.perf_counter() - started
         parts = {"sampler": seconds["sampler"], "field_encoding": seconds["field_encoding"],
                  "field_rest": seconds["field"] - seconds["field_encoding"],

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 import nerf_lightning.fields.hash_grid as hash_grid
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.geometry.rays import image_rays
-from nerf_lightning.rendering.views import render_view
+
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_hash_grid import SIZES, encoding_calls  # noqa: E402  the presets' encodings, timed the same way
@@ -137,7 +137,7 @@ def time_checkpoint(ckpt: Path, ways: dict[str, Callable[[], None]], result: dic
     views = scene.held_out("test").scaled(0.5)
     result["frame_size"] = [views.width, views.height]
     result["seconds_median"]["frame_half_size"] = interleaved(
-        lambda: render_view(model, views.K[0], views.c2w[0], views.height, views.width), ways, 2, 1)
+        lambda: model.render_view(views.K[0], views.c2w[0], views.height, views.width), ways, 2, 1)
     print({key: result["seconds_median"][key] for key in ("training_step_1024_rays", "frame_half_size")}, flush=True)
 
 

@@ -8,7 +8,7 @@ For each precision: trains ``experiment=<--preset>`` (default ``fast_blender_gpu
 largest of ``--minutes`` of training time with a checkpoint as training time reaches each mark
 (:class:`~nerf_lightning.callbacks.CheckpointAtMinutes`; validating costs the clock nothing), then scores each
 checkpoint on ``--eval-views`` evenly spaced views of the val split (100: all of them) with
-:func:`~nerf_lightning.evaluation.evaluate_views`, the same metrics as ``nerf-eval``, timing each frame.
+:func:`~nerf_lightning.outputs.evaluation.evaluate_views`, the same metrics as ``nerf-eval``, timing each frame.
 ``--device cpu`` runs it on a CPU (tiny settings, to check the script). Exits 0 with "skipped" when --root is missing.
 """
 
@@ -30,7 +30,7 @@ from nerf_lightning.checkpoints import load_model, read_checkpoint  # noqa: E402
 from nerf_lightning.data.formats import load_blender  # noqa: E402
 from nerf_lightning.data.scene import evenly_spaced  # noqa: E402
 from nerf_lightning.devices import resolve_device, synchronize  # noqa: E402
-from nerf_lightning.evaluation import evaluate_views  # noqa: E402
+from nerf_lightning.outputs.evaluation import evaluate_views  # noqa: E402
 from nerf_lightning.plots import plot_psnr_curves  # noqa: E402
 
 

@@ -25,7 +25,7 @@ from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.images import downscale
 from nerf_lightning.data.scene import evenly_spaced
 from nerf_lightning.metrics import image_metrics
-from nerf_lightning.rendering.views import render_view
+
 
 
 def main() -> None:
@@ -60,11 +60,11 @@ def main() -> None:
                 for level in range(len(model.sampler.proposal_fields)):
                     model.sampler.baked(level)
             bake_s = time.perf_counter() - started
-        render_view(model, scaled.K[0], scaled.c2w[0], 64, 64)  # warm-up
+        model.render_view(scaled.K[0], scaled.c2w[0], 64, 64)  # warm-up
         rows, frames = [], []
         for index in range(len(scaled)):
             started = time.perf_counter()
-            frame = render_view(model, scaled.K[index], scaled.c2w[index], height, width)
+            frame = model.render_view(scaled.K[index], scaled.c2w[index], height, width)
             seconds = time.perf_counter() - started
             metrics = {key: float(value) for key, value in image_metrics(frame["rgb"], targets[index]).items()}
             if unbaked is not None:

@@ -35,7 +35,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     torch.manual_seed(0)
-    model, info = load_model(args.ckpt, kind="radiance_field", command="bench_train_step")
+    model, info = load_model(args.ckpt)
     encodings = [module for module in model.modules() if hasattr(module, "compile_evaluation")]
     model.train()
     training_step = training_step_of(model, load_run_data(info["config"]).scene.train)

@@ -35,7 +35,7 @@ from nerf_lightning.checkpoints import load_model  # noqa: E402
 from nerf_lightning.data.formats import load_blender  # noqa: E402
 from nerf_lightning.data.scene import evenly_spaced  # noqa: E402
 from nerf_lightning.devices import resolve_device, synchronize  # noqa: E402
-from nerf_lightning.rendering.views import render_view  # noqa: E402
+
 from nerf_lightning.viz.viewer import browser_camera, progressive_heights  # noqa: E402
 
 ASPECT = 4.0 / 3.0  # a browser canvas
@@ -51,7 +51,7 @@ def time_height(model, val, height: int, aspect: float, device) -> dict:
         K, pose, h, w = browser_camera(wxyz, c2w[:3, 3].numpy(), fov_y, aspect, height)
         synchronize(device)
         started = time.perf_counter()
-        render_view(model, K, pose, h, w, chunk_size=model.chunk_size)
+        model.render_view(K, pose, h, w)
         synchronize(device)
         seconds.append(time.perf_counter() - started)
     median = statistics.median(seconds)

@@ -17,7 +17,7 @@ import torch
 
 from nerf_lightning.data.formats import load_procedural
 from nerf_lightning.data.formats.procedural import surface_distance
-from nerf_lightning.mesh import read_mesh
+from nerf_lightning.outputs.mesh import read_mesh
 from nerf_lightning.metrics import chamfer_distance
 
 

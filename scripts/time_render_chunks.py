@@ -9,7 +9,7 @@ import argparse
 import time
 
 from nerf_lightning.checkpoints import load_model, load_run_data
-from nerf_lightning.rendering.views import render_view
+
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("ckpt")
@@ -22,7 +22,7 @@ rendered = views.scaled(args.scale)
 for chunk in args.chunks * 2:
     model.chunk_size = chunk
     started = time.perf_counter()
-    render_view(model, rendered.K[0], rendered.c2w[0], rendered.height, rendered.width)
+    model.render_view(rendered.K[0], rendered.c2w[0], rendered.height, rendered.width)
     seconds = time.perf_counter() - started
     full = f" ({seconds / args.scale**2:.0f} s a {views.width}x{views.height} frame at this rate)" if args.scale != 1.0 else ""
     print(f"chunk_size={chunk}: {seconds:.1f} s for {rendered.width}x{rendered.height}{full}", flush=True)

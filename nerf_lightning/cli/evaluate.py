@@ -1,5 +1,5 @@
-"""nerf-eval: render every held-out view of a radiance field's scene (or of a second capture file, ``root=``) and
-write eval.json with PSNR, SSIM and depth error (:mod:`nerf_lightning.evaluation`)."""
+"""nerf-eval: render every held-out view of a trained model's scene (or of a second capture file, ``root=``) and
+write eval.json with PSNR, SSIM and depth error (:mod:`nerf_lightning.outputs.evaluation`)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from nerf_lightning.errors import ensure_writable, report_errors
 
 def evaluate(cfg: DictConfig) -> dict:
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
-    from nerf_lightning.evaluation import evaluate_checkpoint
+    from nerf_lightning.outputs.evaluation import evaluate_checkpoint
 
     ensure_writable(cfg.output_dir, "output_dir")
-    return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views, cfg.device)
+    return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views, cfg.device, trust=cfg.trust_checkpoint)
 
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="eval")

@@ -1,5 +1,5 @@
-"""nerf-render: render from a nerf-train checkpoint into <run>/renders/<time>/ (an image field at any scale; a
-radiance field along a camera path: GIFs, PNG frames and the path's transforms.json)."""
+"""nerf-render: render from a nerf-train checkpoint into <run>/renders/<time>/ (a model of a scene along a camera path:
+GIFs, PNG frames and the path's transforms.json; an image field at any scale)."""
 
 from __future__ import annotations
 
@@ -19,19 +19,20 @@ def render(cfg: DictConfig) -> list[Path]:
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.checkpoints import load_model
     from nerf_lightning.io import write_png
-    from nerf_lightning.rendering.views import render_camera_path
+    from nerf_lightning.models.contract import RendersCamera, RendersImage
+    from nerf_lightning.outputs.frames import render_camera_path
 
-    model, info = load_model(cfg.ckpt_path, cfg.device)
+    model, info = load_model(cfg.ckpt_path, cfg.device, trust=cfg.trust_checkpoint)
     output_dir = ensure_writable(cfg.output_dir, "output_dir")
     scale = float(cfg.render.scale)
-    if info["kind"] == "image_field":
+    if isinstance(model, RendersCamera):
+        return render_camera_path(model, info["config"], output_dir, cfg.render.path, cfg.render.frames, scale, cfg.render.fps, cfg.render.depth_colormap)
+    if isinstance(model, RendersImage):
         image = model.render_image(scale)
         path = write_png(output_dir / f"rgb_scale{scale:g}.png", image)
         log.info("wrote %s (%dx%d)", path, image.shape[1], image.shape[0])
         return [path]
-    if info["kind"] != "radiance_field":
-        raise ValueError(f"{cfg.ckpt_path} holds a model of kind '{info['kind']}'; nerf-render knows image_field and radiance_field")
-    return render_camera_path(model, info["config"], output_dir, cfg.render.path, cfg.render.frames, scale, cfg.render.fps, cfg.render.depth_colormap)
+    raise ValueError(f"{cfg.ckpt_path} holds a {type(model).__name__}, which renders neither a camera nor an image: nothing for nerf-render")
 
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="render")

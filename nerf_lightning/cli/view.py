@@ -1,4 +1,4 @@
-"""nerf-view: a trained radiance field in the browser (extra ``viz``), rendered from the browser's camera
+"""nerf-view: a trained model of a scene in the browser (extra ``viz``), rendered from the browser's camera
 (:class:`~nerf_lightning.viz.viewer.FieldViewer`)."""
 
 from __future__ import annotations
@@ -22,12 +22,14 @@ def view(cfg: DictConfig) -> FieldViewer:
     """Start the viewer of ``cfg.ckpt_path`` on ``cfg.host``:``cfg.port`` (the caller runs ``serve_forever``)."""
     # imported here, not at the top: a wrong key is answered before torch loads (seconds)
     from nerf_lightning.checkpoints import load_model, load_run_data
+    from nerf_lightning.models.contract import RendersCamera, require
     from nerf_lightning.viz.viewer import FieldViewer
     from nerf_lightning.viz.viser_view import start_server
 
     server = start_server(cfg.host, cfg.port)  # before loading anything: a missing extra or a taken port fails at once
     try:
-        model, info = load_model(cfg.ckpt_path, cfg.device, kind="radiance_field", command="nerf-view")
+        model, info = load_model(cfg.ckpt_path, cfg.device, trust=cfg.trust_checkpoint)
+        require(model, RendersCamera, "nerf-view", "a model that renders a camera")
         datamodule = load_run_data(info["config"])
         viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, cfg.output_dir,
                              moving_frame_s=cfg.view.moving_frame_s, max_resolution=cfg.view.max_resolution)

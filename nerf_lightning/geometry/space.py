@@ -191,12 +191,15 @@ class SceneSpace(nn.Module):
 
     # -- pictures and meshes ------------------------------------------------------------------------------------
 
-    def depth_picture(self, depth: torch.Tensor) -> torch.Tensor:
-        """Depth as a picture in [0, 1], near bright: linear between near and far; for a contracted scene contracted
-        like the scene, 1 - d/2 up to d = 1 (the inner box's half-size), 1/(2d) beyond."""
+    def depth_picture(self, depth: torch.Tensor, accumulation: torch.Tensor | None = None) -> torch.Tensor:
+        """Depth (...,) as a picture (...,) in [0, 1], near bright: linear between near and far; for a contracted scene
+        contracted like the scene, 1 - d/2 up to d = 1 (the inner box's half-size), 1/(2d) beyond. With
+        ``accumulation`` (...,) it fades out where nothing is hit (the depth of a transparent pixel means nothing)."""
         if self.contraction is not None:
-            return torch.where(depth <= 1.0, 1.0 - depth / 2.0, 0.5 / depth.clamp(min=1.0))
-        return (1.0 - (depth - self.near) / (self.far - self.near)).clamp(0.0, 1.0)
+            picture = torch.where(depth <= 1.0, 1.0 - depth / 2.0, 0.5 / depth.clamp(min=1.0))
+        else:
+            picture = (1.0 - (depth - self.near) / (self.far - self.near)).clamp(0.0, 1.0)
+        return picture if accumulation is None else picture * accumulation
 
     def bounded_box(self, aabb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The part of a field-space box ``aabb`` (6,) that can be meshed, as low, high (3,) in the sampling space:

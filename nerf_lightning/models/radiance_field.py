@@ -5,21 +5,28 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 from torchmetrics import MeanMetric
 
+from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import image_metrics, mse_to_psnr
 from nerf_lightning.models.base import FieldModule
+from nerf_lightning.models.contract import Overlay
 from nerf_lightning.rendering.renderer import VolumeRenderer
 from nerf_lightning.rendering.samplers.base import RaySampler
 
 
 class RadianceFieldModule(FieldModule):
     """Trains a radiance field on random rays with an MSE loss on the rendered colour, plus the sampler's own losses.
+
+    Under the model contract (:mod:`nerf_lightning.models.contract`) it renders a camera (:meth:`render_view`), has
+    a density to mesh (:meth:`density_at`, :meth:`colour_at`, :meth:`mesh_box`) and shows its box and its occupancy
+    grid's occupied cells in the viewer (:meth:`overlay_names`, :meth:`overlay`).
 
     A ray goes through the scene space (:class:`~nerf_lightning.geometry.space.SceneSpace`, taken from the
     DataModule when fitting starts and kept in checkpoints), the sampler, the field and the renderer. Logs
@@ -124,6 +131,71 @@ class RadianceFieldModule(FieldModule):
                 parts[key].append(out[key])
         return {key: torch.cat(parts[key]) for key in keys}
 
+    @torch.no_grad()
+    def render_view(self, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
+                    abort: Callable[[], bool] | None = None) -> dict[str, torch.Tensor] | None:
+        """One pinhole view (the model contract, :class:`~nerf_lightning.models.contract.RendersCamera`): K (3, 3) and
+        an OpenCV c2w (4, 4) -> rgb (H, W, 3), depth (H, W), accumulation (H, W) on the model's device, rendered
+        ``chunk_size`` rays at a time; None when ``abort()`` turns true between two chunks."""
+        rays_o, rays_d = image_rays(K[None].to(self.device, torch.float32), c2w[None].to(self.device, torch.float32), height, width)
+        out = self.render_chunked(rays_o[0], rays_d[0], abort=abort)
+        if out is None:
+            return None
+        return {key: value.reshape(height, width, -1).squeeze(-1) for key, value in out.items()}
+
+    # -- what it can do beyond rendering (the contract's capabilities) ------------------------------------------
+
+    def density_at(self, points: torch.Tensor) -> torch.Tensor:
+        """(N, 3) points in the sampling space -> (N,) the field's density there (differentiable in the points)."""
+        return self.field.density(self.space.to_field(points))
+
+    def colour_at(self, points: torch.Tensor, viewdirs: torch.Tensor) -> torch.Tensor:
+        """(N, 3) points in the sampling space, seen along (N, 3) unit directions -> (N, 3) the field's colour."""
+        return self.field(self.space.to_field(points), viewdirs)["rgb"]
+
+    def _box(self) -> torch.Tensor | None:
+        """(6,) the field's box, or its occupancy grid's; None without one."""
+        for owner in (self.field, getattr(self.sampler, "grid", None)):
+            aabb = getattr(owner, "aabb", None)
+            if isinstance(aabb, torch.Tensor):
+                return aabb
+        return None
+
+    def mesh_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """low, high (3,): the bounded part of the field's box in the sampling space
+        (:meth:`SceneSpace.bounded_box <nerf_lightning.geometry.space.SceneSpace.bounded_box>`), else [-1.5, 1.5]^3."""
+        aabb = self._box()
+        return self.space.bounded_box(aabb if aabb is not None else torch.tensor([-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]))
+
+    def overlay_names(self) -> dict[str, str]:
+        """What the viewer can draw: the scene's box (where the field has one) and an occupancy grid's occupied cells."""
+        names = {}
+        if self._box() is not None:
+            names["box"] = "Scene box"
+        if getattr(self.sampler, "grid", None) is not None:
+            names["occupied_cells"] = "Occupied cells"
+        return names
+
+    def overlay(self, name: str) -> Overlay | None:
+        """``box``: the world edges of the part of the box that has a place in the world (all of it for a bounded
+        scene, the inner box of a contracted one, the box short of infinity in NDC); ``occupied_cells``: the world
+        centres of the occupancy grid's occupied cells (at most 100 000, evenly thinned)."""
+        if name == "box":
+            aabb = self._box()
+            if aabb is None:
+                return None
+            low, high = self.space.bounded_box(aabb)
+            ndc = self.space.ndc
+            edges = box_edges(low, high, (lambda p: p) if ndc is None else (lambda p: ndc.to_world(p.double())))
+            return Overlay("Scene box", "lines", edges, (200, 40, 160), 2.0)
+        if name == "occupied_cells":
+            grid = getattr(self.sampler, "grid", None)
+            if grid is None:
+                return None
+            centres, size = occupied_centres(grid, self.space)
+            return Overlay("Occupied cells", "points", centres, (240, 120, 30), size) if len(centres) else None
+        raise ValueError(f"{type(self).__name__} has no overlay '{name}': it has {', '.join(self.overlay_names()) or 'none'}")
+
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)
         rays_o, rays_d, camera_index = batch["rays_o"], batch["rays_d"], batch.get("camera_index")
@@ -152,8 +224,8 @@ class RadianceFieldModule(FieldModule):
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
         height, width = batch["height"], batch["width"]
-        out = self.render_chunked(batch["rays_o"], batch["rays_d"])
-        rgb, depth = out["rgb"].reshape(height, width, 3), out["depth"].reshape(height, width)
+        out = self.render_view(batch["K"], batch["c2w"], height, width)
+        rgb, depth = out["rgb"], out["depth"]
         target = batch["rgb"].reshape(height, width, 3)
         true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
         metrics = image_metrics(rgb, target, depth, true_depth)
@@ -162,7 +234,7 @@ class RadianceFieldModule(FieldModule):
         if "depth_error" in metrics:  # every rank validates views of the same scene: all log the key, or none does
             self.val_depth_error.update(metrics["depth_error"])
             self.log("val/depth_error", self.val_depth_error, batch_size=1)
-        picture = self.space.depth_picture(depth) * out["accumulation"].reshape(height, width)
+        picture = self.space.depth_picture(depth, out["accumulation"])
         return {"images": {"rgb": rgb, "depth": picture, "target": target}}
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -173,3 +245,26 @@ class RadianceFieldModule(FieldModule):
         super().on_load_checkpoint(checkpoint)
         if checkpoint.get("scene_space"):
             self.space = SceneSpace.from_state(checkpoint["scene_space"]).to(self.device)
+
+
+def box_edges(low: torch.Tensor, high: torch.Tensor, to_world: Callable[[torch.Tensor], torch.Tensor]) -> np.ndarray:
+    """(12, 2, 3) float32 the edges of the box low..high (3,) mapped by ``to_world`` (lines stay lines: identity or NDC)."""
+    corners = torch.tensor([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=torch.float32)
+    corners = to_world(low + corners * (high - low)).float()
+    edges = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
+    return torch.stack([torch.stack([corners[a], corners[b]]) for a, b in edges]).numpy()
+
+
+def occupied_centres(grid, space: SceneSpace, limit: int = 100_000) -> tuple[np.ndarray, float]:
+    """(M, 3) float32 world centres of an occupancy grid's occupied cells (at most ``limit``, evenly thinned; for a
+    contracted scene those of the inner box; in NDC those short of infinity) and the cell size."""
+    centres = grid.cell_centres()[grid.binary].detach().float().cpu()  # (M, 3) field space
+    if space.contraction is not None:
+        centres = centres[(centres.abs() <= 1.0).all(dim=-1)]
+    if space.ndc is not None:
+        centres = centres[centres[:, 2] < space.ndc.mesh_far_z]
+        centres = space.ndc.to_world(centres.double()).float()
+    if centres.shape[0] > limit:
+        centres = centres[torch.linspace(0, centres.shape[0] - 1, limit).long()]
+    size = float((grid.aabb[3:] - grid.aabb[:3]).min()) / grid.resolution
+    return centres.numpy(), size

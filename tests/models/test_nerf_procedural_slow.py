@@ -11,7 +11,7 @@ from nerf_lightning.cli.export import export
 from nerf_lightning.config import compose_config
 from nerf_lightning.data.formats import load_procedural
 from nerf_lightning.data.formats.procedural import surface_distance
-from nerf_lightning.mesh import read_mesh
+from nerf_lightning.outputs.mesh import read_mesh
 from nerf_lightning.metrics import chamfer_distance
 from nerf_lightning.training import train
 

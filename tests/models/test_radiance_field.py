@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nerf_lightning.config import compose_config
-from nerf_lightning.mesh import read_mesh
+from nerf_lightning.outputs.mesh import read_mesh
 from nerf_lightning.training import train
 from tests.conftest import run_cli
 

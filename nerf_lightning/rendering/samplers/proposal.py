@@ -152,7 +152,8 @@ class ProposalSampler(RaySampler):
         t_enter, t_exit = space.ray_range(rays)
         learn = perturb and torch.is_grad_enabled() and (self.step < self.warmup_steps or self.step % self.update_every == 0)
         exponent = self.anneal() if perturb else 1.0
-        bake = self.bake_resolution is not None and not perturb and not torch.is_grad_enabled()
+        # a module still training (the live viewer renders between steps) changes every step: a bake would not outlive the frame
+        bake = self.bake_resolution is not None and not self.training and not perturb and not torch.is_grad_enabled()
         proposals = [self.baked(level) for level in range(len(self.proposal_fields))] if bake else self.proposal_fields
         edges, levels = None, []
         for proposal, n_samples in zip(proposals, self.proposal_samples):

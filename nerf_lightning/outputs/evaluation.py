@@ -1,4 +1,4 @@
-"""Evaluating a trained radiance field on held-out views: PSNR, SSIM and depth error per view and on average.
+"""Evaluating a trained model (any that renders a camera) on held-out views: PSNR, SSIM and depth error per view and on average.
 
 ``root=<transforms.json>`` evaluates on views captured separately instead: a second file of the same capture
 (instant-ngp / nerfstudio / Blender layout), loaded into the trained scene's world with the similarity the
@@ -19,12 +19,13 @@ from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import image_metrics
-from nerf_lightning.rendering.views import render_views
+from nerf_lightning.models.contract import RendersCamera, require
+from nerf_lightning.outputs.frames import render_frames
 
 log = logging.getLogger(__name__)
 
 
-def second_capture(model, config: dict, root: str | Path) -> Scene:
+def second_capture(model: RendersCamera, config: dict, root: str | Path) -> Scene:
     """Another ``transforms.json`` of the trained capture, in the trained scene's world: every frame with an image
     in ``train`` (``holdout_every=0``) or in the splits the file names; downscale and background as in training."""
     scene_cfg = config["data"]["scene"]
@@ -34,7 +35,7 @@ def second_capture(model, config: dict, root: str | Path) -> Scene:
                            background=tuple(scene_cfg.get("background") or (0.0, 0.0, 0.0)))
 
 
-def views_to_evaluate(model, config: dict, split: str = "test", root: str | Path | None = None) -> Views:
+def views_to_evaluate(model: RendersCamera, config: dict, split: str = "test", root: str | Path | None = None) -> Views:
     """The held-out views of the run's scene (``split``, else the other held-out split), or those of ``root`` (its
     ``split`` if it names one, else all)."""
     if not root:
@@ -43,18 +44,18 @@ def views_to_evaluate(model, config: dict, split: str = "test", root: str | Path
     return scene.splits[split] if split in scene.splits else scene.train
 
 
-def evaluate_views(model, views: Views, output_dir: Path | None = None) -> list[dict[str, Any]]:
+def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None = None) -> list[dict[str, Any]]:
     """Render ``views`` (with images) and score each with :func:`~nerf_lightning.metrics.image_metrics`; with
     ``output_dir``, the renders go to ``images/<view>_rgb.png`` and ``_depth.png`` there."""
     rows = []
-    for index, frame in enumerate(render_views(model, views, desc=f"evaluating {len(views)} views")):
+    for index, frame in enumerate(render_frames(model, views, desc=f"evaluating {len(views)} views")):
         true_depth = views.depth[index] if views.depth is not None else None
         metrics = image_metrics(frame["rgb"], as_float_rgb(views.images[index]), frame["depth"] if true_depth is not None else None, true_depth)
         rows.append({"view": views.names[index], **{key: float(value) for key, value in metrics.items()}})
         if output_dir is not None:
             stem = Path(views.names[index]).stem
             write_png(output_dir / "images" / f"{stem}_rgb.png", frame["rgb"])
-            write_png(output_dir / "images" / f"{stem}_depth.png", model.space.depth_picture(frame["depth"]) * frame["accumulation"])
+            write_png(output_dir / "images" / f"{stem}_depth.png", model.space.depth_picture(frame["depth"], frame["accumulation"]))
     return rows
 
 
@@ -70,10 +71,12 @@ def mean_metrics(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 
 def evaluate_checkpoint(ckpt_path: str | Path, output_dir: str | Path, split: str = "test", root: str | Path | None = None,
-                        max_views: int | None = None, device: str = "cpu") -> dict[str, Any]:
-    """Evaluate a radiance-field checkpoint (see :func:`views_to_evaluate`); writes ``eval.json`` and the renders into
-    ``output_dir`` and returns what eval.json holds. Rendered on ``device`` (auto, cpu, cuda, mps)."""
-    model, info = load_model(ckpt_path, device, kind="radiance_field", command="nerf-eval")
+                        max_views: int | None = None, device: str = "cpu", trust: bool = False) -> dict[str, Any]:
+    """Evaluate the model of a checkpoint (any that renders a camera; see :func:`views_to_evaluate`); writes
+    ``eval.json`` and the renders into ``output_dir`` and returns what eval.json holds. Rendered on ``device`` (auto,
+    cpu, cuda, mps); ``trust``: see :func:`~nerf_lightning.checkpoints.read_checkpoint`."""
+    model, info = load_model(ckpt_path, device, trust=trust)
+    require(model, RendersCamera, "nerf-eval", "a model that renders a camera")
     output_dir = Path(output_dir)
     views = views_to_evaluate(model, info["config"], split, root)
     if max_views:

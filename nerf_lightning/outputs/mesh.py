@@ -1,4 +1,4 @@
-"""Meshes of a radiance field: marching cubes (PyMCubes) on its density, vertex colours, floaters removed, written
+"""Meshes of a model with a density (:class:`~nerf_lightning.models.contract.HasDensity`): marching cubes (PyMCubes) on its density, vertex colours, floaters removed, written
 with trimesh as PLY, OBJ or GLB (which browsers and 3D viewers open)."""
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import torch
 import trimesh
 
 from nerf_lightning.io import to_uint8, write_atomic
+from nerf_lightning.models.contract import HasDensity
 
 FORMATS = ("ply", "obj", "glb")
 
@@ -102,42 +103,36 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     return loaded
 
 
-def mesh_radiance_field(model, bounds=None, resolution: int = 128, threshold: float = 10.0, keep: str | int = 100,
-                        frame: str = "capture") -> tuple[trimesh.Trimesh, dict]:
-    """A coloured mesh of a trained :class:`~nerf_lightning.models.RadianceFieldModule` by marching cubes on its density.
+def mesh_model(model: HasDensity, bounds=None, resolution: int = 128, threshold: float = 10.0, keep: str | int = 100,
+               frame: str = "capture") -> tuple[trimesh.Trimesh, dict]:
+    """A coloured mesh of a model with a density (``density_at``, ``colour_at``, ``mesh_box``) by marching cubes.
 
     The density is sampled on a ``resolution``^3 grid over ``bounds`` ([[x, y, z] low, [x, y, z] high] in the
-    sampling space: the scene's world, or NDC) or, by default, the bounded part of the field's box
-    (:meth:`SceneSpace.bounded_box <nerf_lightning.geometry.space.SceneSpace.bounded_box>`), else [-1.5, 1.5]^3;
-    the ``threshold`` level set is coloured from outside, pieces are kept by ``keep`` (:func:`keep_pieces`) and the
-    vertices are written in the capture's coordinates (``frame="capture"``) or the sampling space's (``"scene"``).
+    sampling space: the scene's world, or NDC) or, by default, the model's ``mesh_box()``; the ``threshold`` level set
+    is coloured from outside, pieces are kept by ``keep`` (:func:`keep_pieces`) and the vertices are written in the
+    capture's coordinates (``frame="capture"``) or the sampling space's (``"scene"``).
     Returns the mesh and a summary (box, counts) for the log.
     """
     if frame not in ("capture", "scene"):
         raise ValueError(f"export frame must be capture or scene, got '{frame}'")
     keep = parse_keep(keep)
-    space, field, device = model.space, model.field, model.device
+    device = model.device
     if bounds is not None:
         low, high = torch.tensor(list(bounds[0]), dtype=torch.float32), torch.tensor(list(bounds[1]), dtype=torch.float32)
-    elif isinstance(getattr(field, "aabb", None), torch.Tensor):
-        low, high = space.bounded_box(field.aabb)
     else:
-        low, high = space.bounded_box(torch.tensor([-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]))
+        low, high = model.mesh_box()
     if not bool((high > low).all()):
         raise ValueError(f"export bounds must have low < high on every axis, got {low.tolist()} and {high.tolist()}")
 
-    def density(points: torch.Tensor) -> torch.Tensor:
-        return field.density(space.to_field(points))
-
-    grid = density_grid(density, low, high, resolution, device=device)
+    grid = density_grid(model.density_at, low, high, resolution, device=device)
     vertices, faces = marching_cubes(grid, threshold, low, high)
     if len(faces) == 0:
         raise ValueError(f"no surface: the density never crosses threshold={threshold} in the box {low.tolist()}..{high.tolist()} "
                          f"(its range there is {float(grid.min()):.3g}..{float(grid.max()):.3g}); lower the threshold or move the box")
-    colours = vertex_colours(lambda points, viewdirs: field(space.to_field(points), viewdirs)["rgb"], density, vertices, device=device)
+    colours = vertex_colours(model.colour_at, model.density_at, vertices, device=device)
     mesh = keep_pieces(make_mesh(vertices, faces, colours), keep)
     if frame == "capture":
-        mesh.vertices = space.to_capture(torch.from_numpy(np.asarray(mesh.vertices))).numpy()
+        mesh.vertices = model.space.to_capture(torch.from_numpy(np.asarray(mesh.vertices))).numpy()
     info = {"faces_before_keep": int(len(faces)), "faces": int(len(mesh.faces)), "vertices": int(len(mesh.vertices)),
             "box": [low.tolist(), high.tolist()], "keep": keep, "frame": frame}
     return mesh, info

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerf_lightning.mesh import density_grid, keep_pieces, make_mesh, marching_cubes, parse_keep, read_mesh, vertex_colours, write_mesh
+from nerf_lightning.outputs.mesh import density_grid, keep_pieces, make_mesh, marching_cubes, parse_keep, read_mesh, vertex_colours, write_mesh
 
 
 class SphereField(torch.nn.Module):

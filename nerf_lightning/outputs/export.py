@@ -1,0 +1,65 @@
+"""What ``nerf-export`` writes, by format, and what a model needs to be exported in it.
+
+Each format names the capability it asks of the model (a protocol of :mod:`nerf_lightning.models.contract`) and
+the writer; a model is exported in every format whose capability it has, and asked for another one, the command
+names the formats it does have. A new export is one entry here.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from nerf_lightning.models.contract import HasDensity
+from nerf_lightning.outputs.mesh import mesh_model, write_mesh
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ExportFormat:
+    """One format: the capability it needs (``needs``, in words for messages), and ``write(model, options,
+    output_dir) -> path``, where ``options`` are nerf-export's keys."""
+
+    capability: type
+    needs: str
+    write: Callable[[Any, Mapping[str, Any], Path], Path]
+
+
+def _mesh_writer(file_type: str) -> Callable[[Any, Mapping[str, Any], Path], Path]:
+    def write(model: HasDensity, options: Mapping[str, Any], output_dir: Path) -> Path:
+        mesh, info = mesh_model(model, options.get("bounds"), int(options.get("resolution", 128)), float(options.get("threshold", 10.0)),
+                                options.get("keep", 100), options.get("frame", "capture"))
+        path = write_mesh(output_dir / f"mesh.{file_type}", mesh)
+        log.info("wrote %s: %d vertices, %d faces of %d kept (keep=%s; grid %d^3 over %s..%s, threshold %g, %s coordinates)", path,
+                 info["vertices"], info["faces"], info["faces_before_keep"], info["keep"], int(options.get("resolution", 128)), *info["box"],
+                 float(options.get("threshold", 10.0)), info["frame"])
+        return path
+
+    return write
+
+
+EXPORT_FORMATS: dict[str, ExportFormat] = {
+    file_type: ExportFormat(HasDensity, "a density to mesh (marching cubes)", _mesh_writer(file_type)) for file_type in ("ply", "obj", "glb")
+}
+
+
+def formats_of(model: Any) -> list[str]:
+    """The formats ``model`` can be exported in."""
+    return [name for name, entry in EXPORT_FORMATS.items() if isinstance(model, entry.capability)]
+
+
+def export_model(model: Any, file_format: str, output_dir: str | Path, options: Mapping[str, Any]) -> Path:
+    """Write ``model`` in ``file_format`` into ``output_dir``; ValueError in one line for an unknown format or one
+    the model cannot be exported in (naming those it can)."""
+    entry = EXPORT_FORMATS.get(str(file_format))
+    if entry is None:
+        raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got '{file_format}'")
+    if not isinstance(model, entry.capability):
+        have = formats_of(model)
+        offer = f"it exports {', '.join(have)}" if have else "it has nothing nerf-export writes"
+        raise ValueError(f"format={file_format} needs {entry.needs}; this checkpoint holds a {type(model).__name__}, which has none: {offer}")
+    return entry.write(model, options, Path(output_dir))

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import io
 import logging
+import pickle
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -43,16 +46,86 @@ CHECKPOINT_FORMAT = 2
 LAST_COMMIT_OF_FORMAT_1 = "5bab3ec"
 
 
-def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+# What a checkpoint may hold beyond torch's own weights_only allow-list (tensors and their storages, dtypes, devices,
+# OrderedDict and Python's plain types): nothing. Every preset's checkpoints, trained a few steps with the default
+# callbacks (best.ckpt, last.ckpt, validation history), hold only collections.OrderedDict, torch._utils._rebuild_tensor_v2
+# and torch.{Float,Byte,Bool}Storage, all in torch's list; Lightning's own entries (loops, optimiser and scheduler
+# states, callback states, ModelCheckpoint's scores) are tensors, numbers, strings, lists and dicts. A class this
+# project starts storing in checkpoints goes here, or the files that hold it are refused without trust_checkpoint=true.
+CHECKPOINT_GLOBALS: tuple[Any, ...] = ()
+TRUST_HINT = "if you trust whoever made the file, pass trust_checkpoint=true"
+
+
+class UntrustedCheckpointError(ValueError):
+    """A checkpoint that needs more than :func:`allowed_globals` to load, opened without ``trust``."""
+
+
+def allowed_globals() -> list[Any]:
+    """The classes and functions a nerf-train checkpoint may hold beyond torch's weights_only defaults
+    (:data:`CHECKPOINT_GLOBALS`), for ``torch.serialization.safe_globals``."""
+    return list(CHECKPOINT_GLOBALS)
+
+
+@contextmanager
+def checkpoint_globals() -> Iterator[None]:
+    """Torch's weights_only loads in the block also take :func:`allowed_globals` (and nothing more once it ends).
+
+    For Lightning's own reading of a checkpoint when a run resumes, which reads the file again after
+    :func:`read_checkpoint` checked it::
+
+        with checkpoint_globals():
+            trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=not trust)
+    """
+    with torch.serialization.safe_globals(allowed_globals()):
+        yield
+
+
+def _needed_globals(path: Path) -> list[str]:
+    """The globals (``module.name``) the pickle in ``path`` names beyond torch's list and :func:`allowed_globals`,
+    found by reading it, not running it; [] where it cannot be read that way."""
+    try:
+        return sorted(torch.serialization.get_unsafe_globals_in_checkpoint(path))
+    except Exception:  # noqa: BLE001 (only a better message depends on it: the load has failed already)
+        return []
+
+
+def _load_restricted(path: Path, map_location: str | torch.device) -> dict[str, Any]:
+    """``torch.load`` with weights_only and :func:`allowed_globals`; UntrustedCheckpointError naming what else the
+    file needs, raised before anything in it runs."""
+    with checkpoint_globals():
+        try:
+            return torch.load(path, map_location=map_location, weights_only=True, mmap=True)
+        except pickle.UnpicklingError as error:  # weights_only met something outside the allow-list
+            needed = _needed_globals(path)
+            if needed:
+                names = ", ".join(f"`{name}`" for name in needed)
+                raise UntrustedCheckpointError(f"{path} needs {names}, which nerf-lightning checkpoints never hold; {TRUST_HINT}") from None
+            lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+            reason = next((line for line in lines if "GLOBAL" in line or "Unsupported" in line or "WeightsUnpickler" in line), lines[-1] if lines else "")
+            raise UntrustedCheckpointError(f"{path} holds something nerf-lightning checkpoints never hold ({reason}); {TRUST_HINT}") from None
+
+
+def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "cpu", trust: bool = False) -> dict[str, Any]:
     """A nerf-train checkpoint, checked: FileNotFoundError for a missing file; ValueError for a file that is not a
-    nerf-train checkpoint, or one whose layout this version cannot load (naming the version that wrote it)."""
+    nerf-train checkpoint, or one whose layout this version cannot load (naming the version that wrote it).
+
+    Unpickling can run any code a file names, so unless ``trust`` the file is read with torch's weights_only and
+    :func:`allowed_globals`: a file that needs anything more is refused (ValueError naming what it needs) before any of
+    it runs. ``trust=True`` (``trust_checkpoint=true``) reads it whole, running whatever it holds.
+    """
     path = Path(ckpt_path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
-        checkpoint = torch.load(path, map_location=map_location, weights_only=False, mmap=True)
+        if trust:
+            checkpoint = torch.load(path, map_location=map_location, weights_only=False, mmap=True)
+        else:
+            checkpoint = _load_restricted(path, map_location)
+    except UntrustedCheckpointError:
+        raise
     except Exception as error:
-        raise ValueError(f"could not read checkpoint {path}: {error}") from error
+        first_line = next((line.strip() for line in str(error).splitlines() if line.strip()), type(error).__name__)
+        raise ValueError(f"could not read checkpoint {path}: {first_line}") from error
     info = checkpoint.get("nerf_lightning") if isinstance(checkpoint, dict) else None
     if not info or "config" not in info:
         raise ValueError(f"{path} is not a nerf-train checkpoint: it has no 'nerf_lightning' entry with the run's config")
@@ -67,21 +140,18 @@ def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "c
     return checkpoint
 
 
-def load_model(
-    ckpt_path: str | Path, device: str | torch.device = "cpu", kind: str | None = None, command: str = "this command"
-) -> tuple[L.LightningModule, dict[str, Any]]:
+def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust: bool = False) -> tuple[L.LightningModule, dict[str, Any]]:
     """Load a nerf-train checkpoint (:func:`read_checkpoint`) on the CPU, then move it to ``device`` (``auto``, ``cpu``,
     ``cuda``, ``mps``: :func:`~nerf_lightning.devices.resolve_device`): the model in eval mode and the run's resolved config.
 
-    Raises ValueError, besides :func:`read_checkpoint`'s, when ``kind`` is given and the checkpoint holds another kind
-    of model than ``command`` works with, or ``device`` is not one this machine has.
+    What a command needs of the model it asks by protocol (:mod:`nerf_lightning.models.contract`), not here by a kind.
+    Raises ValueError, besides :func:`read_checkpoint`'s, when ``device`` is not one this machine has. ``trust``: as
+    :func:`read_checkpoint`'s (``trust_checkpoint=true``: the file may run code).
     """
     path = Path(ckpt_path).expanduser()
     target = resolve_device(device)
-    checkpoint = read_checkpoint(path, "cpu")
+    checkpoint = read_checkpoint(path, "cpu", trust=trust)
     info = checkpoint["nerf_lightning"]
-    if kind is not None and info.get("kind") != kind:
-        raise ValueError(f"{path} holds a model of kind '{info.get('kind')}'; {command} works with {kind} checkpoints")
     config = info["config"]
     model = instantiate(OmegaConf.create(config["model"]))
     model.on_load_checkpoint(checkpoint)

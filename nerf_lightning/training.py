@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 import warnings
 from pathlib import Path
@@ -12,7 +13,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from nerf_lightning.callbacks import RunConfigInCheckpoint, StepProgressBar
-from nerf_lightning.checkpoints import read_checkpoint
+from nerf_lightning.checkpoints import checkpoint_globals, read_checkpoint
 from nerf_lightning.devices import enable_tf32
 from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_json
@@ -20,6 +21,8 @@ from nerf_lightning.io import write_json
 # Batches are drawn in the main process on purpose: workers would only copy the precomputed tensors.
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
 warnings.filterwarnings("ignore", ".*isinstance\(treespec, LeafSpec\).*")
+# Lightning's adverts for its cloud services (litlogger, litmodels) on every run; it has no switch for them (Lightning-AI/pytorch-lightning#21294)
+logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(lambda record: "💡 Tip" not in record.getMessage())
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
@@ -29,7 +32,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if ckpt_path:
         if not Path(ckpt_path).expanduser().is_file():
             raise FileNotFoundError(f"ckpt_path={ckpt_path} not found: expected a checkpoint of a run, such as <run>/checkpoints/last.ckpt")
-        read_checkpoint(ckpt_path)  # refuses, in one line, a checkpoint of an older layout before Lightning reads it
+        # refuses, in one line, a checkpoint of an older layout, or one that would run code, before Lightning reads it
+        read_checkpoint(ckpt_path, trust=cfg.trust_checkpoint)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     enable_tf32()
 
@@ -38,20 +42,14 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
     callbacks.append(RunConfigInCheckpoint(resolved))
-    if cfg.get("viewer"):
-        from nerf_lightning.viz.viewer import LiveViewer
-
-        if cfg.model.get("_target_", "").rsplit(".", 1)[-1] != "RadianceFieldModule":
-            raise ValueError("viewer=true shows a radiance field in the browser; this run trains "
-                             f"{cfg.model.get('_target_')}: leave viewer out, or train a radiance field (experiment=lego, ...)")
-        callbacks.append(LiveViewer(cfg.viewer_host, cfg.viewer_port, output_dir, cfg.viewer_time_share))
     if cfg.trainer.get("enable_progress_bar", True):
         callbacks.append(StepProgressBar())
     loggers = [instantiate(logger) for logger in (cfg.get("logger") or {}).values()]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
 
     started = time.perf_counter()
-    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    with checkpoint_globals():  # Lightning reads the checkpoint again: as strictly as we did
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=not cfg.trust_checkpoint)
     wall_seconds = time.perf_counter() - started
 
     metrics: dict[str, Any] = {key: float(value) for key, value in trainer.callback_metrics.items()}

@@ -1,7 +1,16 @@
+import os
+import pickle
+import re
+import shlex
+
 import pytest
 import torch
 
-from nerf_lightning.checkpoints import load_model, run_dir_of
+from nerf_lightning.checkpoints import AtomicCheckpointIO, checkpoint_globals, load_model, read_checkpoint, run_dir_of
+from tests.conftest import run_cli
+
+TINY_IMAGE_RUN = ["experiment=image", "data.downscale=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
+                  "trainer.enable_progress_bar=false"]
 
 
 def test_missing_checkpoint_is_named(tmp_path):
@@ -23,16 +32,21 @@ def test_run_dir_of():
     assert run_dir_of("/a/elsewhere/model.ckpt").as_posix() == "/a/elsewhere"
 
 
-def test_a_checkpoint_of_another_model_kind_is_refused_by_name(make_config, tmp_path):
+def test_a_command_asks_the_model_for_what_it_needs_and_refuses_a_model_without_it_in_one_line(make_config, tmp_path):
+    """An image field renders no camera and has no density: nerf-eval and nerf-export say so by capability."""
+    from nerf_lightning.outputs.evaluation import evaluate_checkpoint
+    from nerf_lightning.outputs.export import export_model
     from nerf_lightning.training import train
 
     train(make_config("experiment=image", "data.downscale=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
                       "trainer.enable_progress_bar=false", run_dir=tmp_path / "image"))
     ckpt = tmp_path / "image" / "checkpoints" / "last.ckpt"
-    model, info = load_model(ckpt, kind="image_field")
+    model, info = load_model(ckpt)
     assert info["kind"] == "image_field" and info["global_step"] == 2
-    with pytest.raises(ValueError, match="holds a model of kind 'image_field'; nerf-eval works with radiance_field checkpoints"):
-        load_model(ckpt, kind="radiance_field", command="nerf-eval")
+    with pytest.raises(ValueError, match="nerf-eval needs a model that renders a camera; this checkpoint's model, ImageFieldModule, has none"):
+        evaluate_checkpoint(ckpt, tmp_path / "eval")
+    with pytest.raises(ValueError, match="format=obj needs a density to mesh .*ImageFieldModule.*nothing nerf-export writes"):
+        export_model(model, "obj", tmp_path / "export", {})
 
 
 def test_a_radiance_field_checkpoint_of_0_1_is_refused_in_one_line_naming_its_version(tmp_path):
@@ -74,3 +88,107 @@ def test_an_optimiser_state_saved_before_adam_was_fused_resumes_in_the_fused_one
     fused.step()
     assert all(float(fused.state[p]["step"]) == 3.0 for p in params)
     assert all(torch.isfinite(p).all() for p in params)
+
+
+@pytest.fixture(scope="module")
+def trained_checkpoint(tmp_path_factory):
+    """last.ckpt of a two-step nerf-train run of experiment=image, as this version writes it."""
+    from nerf_lightning.config import compose_config
+    from nerf_lightning.training import train
+
+    run = tmp_path_factory.mktemp("trained")
+    train(compose_config([*TINY_IMAGE_RUN, f"paths.output_dir={run}"]))
+    return run / "checkpoints" / "last.ckpt"
+
+
+class ShellCommand:
+    """Unpickled, runs ``command`` in a shell: what a shared checkpoint can carry."""
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+
+    def __reduce__(self):
+        return os.system, (self.command,)
+
+
+class Allowed:
+    """A plain class a checkpoint could hold, for the allow-list's own test."""
+
+    def __init__(self, value: int) -> None:
+        self.value = value
+
+
+def with_entry(trained_checkpoint, path, value):
+    """A copy of the real checkpoint ``trained_checkpoint`` at ``path``, with ``value`` added to its dict."""
+    checkpoint = torch.load(trained_checkpoint, weights_only=True)
+    checkpoint["shared_extra"] = value
+    torch.save(checkpoint, path)
+    return path
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_before_it_runs_and_loads_only_with_trust(trained_checkpoint, tmp_path):
+    marker = tmp_path / "marker"
+    shared = with_entry(trained_checkpoint, tmp_path / "shared.ckpt", ShellCommand(f"touch {shlex.quote(str(marker))}"))
+    needed = f"{os.system.__module__}.system"  # posix.system here, nt.system on Windows
+    message = rf"^{re.escape(str(shared))} needs `{re.escape(needed)}`, which nerf-lightning checkpoints never hold; if you trust whoever made the file, pass trust_checkpoint=true$"
+    with pytest.raises(ValueError, match=message):
+        read_checkpoint(shared)
+    with pytest.raises(ValueError, match=message):
+        load_model(shared)
+    assert not marker.exists()
+
+    # trust_checkpoint=true: the file is read whole, and what it carries runs
+    checkpoint = read_checkpoint(shared, trust=True)
+    assert marker.exists() and checkpoint["shared_extra"] == 0
+    marker.unlink()
+    model, info = load_model(shared, trust=True)
+    assert marker.exists() and info["kind"] == "image_field" and info["global_step"] == 2
+
+
+def test_a_checkpoint_nerf_train_wrote_loads_with_the_default(trained_checkpoint):
+    checkpoint = read_checkpoint(trained_checkpoint)
+    assert checkpoint["nerf_lightning"]["kind"] == "image_field" and checkpoint["global_step"] == 2
+    assert checkpoint["optimizer_states"] and checkpoint["loops"] and checkpoint["callbacks"]
+    model, info = load_model(trained_checkpoint)
+    loaded = torch.load(trained_checkpoint, weights_only=False)["state_dict"]
+    assert all(torch.equal(value, loaded[name]) for name, value in model.state_dict().items())
+
+
+def test_the_allow_list_is_taken_only_while_a_checkpoint_loads(trained_checkpoint, tmp_path, monkeypatch):
+    import nerf_lightning.checkpoints as checkpoints
+
+    shared = with_entry(trained_checkpoint, tmp_path / "allowed.ckpt", Allowed(3))
+    with pytest.raises(ValueError, match=r"allowed.ckpt needs `tests.test_checkpoints.Allowed`"):
+        read_checkpoint(shared)
+    monkeypatch.setattr(checkpoints, "CHECKPOINT_GLOBALS", (Allowed,))
+    assert read_checkpoint(shared)["shared_extra"].value == 3
+    assert Allowed not in torch.serialization.get_safe_globals()  # the process-wide list is left as it was
+    with pytest.raises(pickle.UnpicklingError):
+        torch.load(shared, weights_only=True)
+
+
+def test_lightnings_resume_reader_refuses_the_payload_when_told_weights_only(trained_checkpoint, tmp_path, monkeypatch):
+    """trainer.fit(ckpt_path=...) reads the file again, with AtomicCheckpointIO.load_checkpoint(weights_only=...). Its
+    default, None, is torch's (True since torch 2.6) unless the environment says TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD, so
+    training passes weights_only=not trust_checkpoint: explicit, it holds whatever the environment says."""
+    marker = tmp_path / "marker"
+    shared = with_entry(trained_checkpoint, tmp_path / "shared.ckpt", ShellCommand(f"touch {shlex.quote(str(marker))}"))
+    monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+    reader = AtomicCheckpointIO()
+    with checkpoint_globals():
+        assert reader.load_checkpoint(trained_checkpoint, weights_only=True)["global_step"] == 2
+        with pytest.raises(pickle.UnpicklingError):
+            reader.load_checkpoint(shared, weights_only=True)
+        assert not marker.exists()
+        with pytest.warns(UserWarning, match="TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD"):
+            reader.load_checkpoint(shared, weights_only=None)
+    assert marker.exists()
+
+
+def test_nerf_train_prints_no_lightning_cloud_adverts(tmp_path):
+    """Lightning logs a litlogger tip on every run, and a litmodels one when it adds its own ModelCheckpoint
+    (callbacks=none); nerf_lightning.training filters both out of its log, nothing else."""
+    result = run_cli("train", *TINY_IMAGE_RUN, "callbacks=none", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    output = result.stdout + result.stderr
+    assert "GPU available" in output  # Lightning's other info lines still show
+    assert "litmodels" not in output and "litlogger" not in output and "💡" not in output

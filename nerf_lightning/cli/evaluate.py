@@ -7,10 +7,12 @@ import hydra
 from omegaconf import DictConfig
 
 import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
+from nerf_lightning.cli.keys import check_eval_keys
 from nerf_lightning.errors import ensure_writable, report_errors
 
 
 def evaluate(cfg: DictConfig) -> dict:
+    check_eval_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.outputs.evaluation import evaluate_checkpoint
 

@@ -10,10 +10,12 @@ import hydra
 from omegaconf import DictConfig
 
 import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
+from nerf_lightning.cli.keys import check_export_keys
 from nerf_lightning.errors import ensure_writable, report_errors
 
 
 def export(cfg: DictConfig) -> Path:
+    check_export_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.checkpoints import load_model
     from nerf_lightning.outputs.export import EXPORT_FORMATS, export_model

@@ -6,10 +6,12 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from nerf_lightning.cli.keys import check_process_data_keys
 from nerf_lightning.errors import report_errors
 
 
 def process(cfg: DictConfig) -> dict:
+    check_process_data_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.data.capture import process_capture
 
@@ -22,9 +24,10 @@ def process(cfg: DictConfig) -> dict:
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="process_data")
 @report_errors("nerf-process-data")
 def main(cfg: DictConfig) -> None:
+    result = process(cfg)  # first: its keys are checked before torch loads
     from nerf_lightning.data.capture import format_report
 
-    print(format_report(process(cfg)))
+    print(format_report(result))
 
 
 if __name__ == "__main__":

@@ -10,12 +10,14 @@ import hydra
 from omegaconf import DictConfig
 
 import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
+from nerf_lightning.cli.keys import check_render_keys
 from nerf_lightning.errors import ensure_writable, report_errors
 
 log = logging.getLogger(__name__)
 
 
 def render(cfg: DictConfig) -> list[Path]:
+    check_render_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.checkpoints import load_model
     from nerf_lightning.io import write_png
@@ -32,7 +34,7 @@ def render(cfg: DictConfig) -> list[Path]:
         path = write_png(output_dir / f"rgb_scale{scale:g}.png", image)
         log.info("wrote %s (%dx%d)", path, image.shape[1], image.shape[0])
         return [path]
-    raise ValueError(f"{cfg.ckpt_path} holds a {type(model).__name__}, which renders neither a camera nor an image: nothing for nerf-render")
+    raise ValueError(f"nerf-render needs a model that renders a camera or an image; {cfg.ckpt_path} holds a {type(model).__name__}, which does neither")
 
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="render")

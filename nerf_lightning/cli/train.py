@@ -8,6 +8,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from nerf_lightning.cli.keys import check_train_keys
 from nerf_lightning.config import renamed_key_message
 from nerf_lightning.errors import fail, report_errors
 
@@ -15,6 +16,7 @@ from nerf_lightning.errors import fail, report_errors
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="train")
 @report_errors("nerf-train")
 def run(cfg: DictConfig) -> float | None:
+    check_train_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.training import train
 

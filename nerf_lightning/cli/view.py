@@ -10,6 +10,7 @@ import hydra
 from omegaconf import DictConfig
 
 import nerf_lightning.config  # noqa: F401 (registers ${run_dir_of:...}, which the config's output_dir uses)
+from nerf_lightning.cli.keys import check_view_keys
 from nerf_lightning.errors import report_errors
 
 if TYPE_CHECKING:
@@ -20,6 +21,7 @@ log = logging.getLogger(__name__)
 
 def view(cfg: DictConfig) -> FieldViewer:
     """Start the viewer of ``cfg.ckpt_path`` on ``cfg.host``:``cfg.port`` (the caller runs ``serve_forever``)."""
+    check_view_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch loads (seconds)
     from nerf_lightning.checkpoints import load_model, load_run_data
     from nerf_lightning.models.contract import RendersCamera, require

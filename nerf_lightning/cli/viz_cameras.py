@@ -10,12 +10,14 @@ import hydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from nerf_lightning.cli.keys import check_viz_cameras_keys
 from nerf_lightning.errors import report_errors
 
 log = logging.getLogger(__name__)
 
 
 def visualise(cfg: DictConfig) -> Path | object:
+    check_viz_cameras_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch loads (seconds)
     from nerf_lightning.devices import resolve_device
     from nerf_lightning.viz.plot import plot_cameras_and_rays

@@ -106,4 +106,4 @@ class RendersImage(Protocol):
 def require(model: Any, capability: type, command: str, what: str) -> None:
     """ValueError in one line when ``model`` lacks ``capability``: ``command`` needs ``what``, this model is X."""
     if not isinstance(model, capability):
-        raise ValueError(f"{command} needs {what}; this checkpoint holds a {type(model).__name__}, which has none")
+        raise ValueError(f"{command} needs {what}; this checkpoint's model, {type(model).__name__}, has none")

@@ -61,5 +61,5 @@ def export_model(model: Any, file_format: str, output_dir: str | Path, options: 
     if not isinstance(model, entry.capability):
         have = formats_of(model)
         offer = f"it exports {', '.join(have)}" if have else "it has nothing nerf-export writes"
-        raise ValueError(f"format={file_format} needs {entry.needs}; this checkpoint holds a {type(model).__name__}, which has none: {offer}")
+        raise ValueError(f"format={file_format} needs {entry.needs}; this checkpoint's model, {type(model).__name__}, has none: {offer}")
     return entry.write(model, options, Path(output_dir))

@@ -17,6 +17,9 @@ is not forward-facing: NDC cannot hold it. It is normalised as a ``transforms.js
 (:func:`~nerf_lightning.data.formats.transforms.normalising_transform`: centred on the cameras' focus, mean up +z,
 the farthest camera coordinate 1), for the contraction (``data.contract=true``, ``experiment=nerfacto_360_cpu``),
 and its render path is the orbit other 360 captures get.
+
+A COLMAP sparse model beside the images (``sparse/0/points3D.bin`` or ``.txt``, where ``imgs2poses`` leaves it) gives
+``scene.points``, mapped into the scene's world by ``world_from_capture`` as the cameras are.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from nerf_lightning.data.images import load_image
 from nerf_lightning.io import write_png
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.data.formats.transforms import apply_similarity, normalising_transform
+from nerf_lightning.data.points import read_colmap_points
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -164,6 +168,7 @@ def load_llff(
             NDC) or ``360`` (cameras all around the subject: normalised as a transforms.json capture, see the
             module's docstring; near 0.05 and far 1.5 x the farthest bound by default).
     """
+    layout = str(layout)  # data.scene.layout=360 on the command line: Hydra reads the name as the number 360
     if layout not in LAYOUTS:
         raise ValueError(f"data.scene.layout must be one of {LAYOUTS} (forward-facing, or all around the subject), got '{layout}'")
     root = Path(root).expanduser()
@@ -223,5 +228,6 @@ def load_llff(
         splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
     near = float(bounds.min() * 0.9) if near is None else near
     far = float(bounds.max()) * (1.0 if layout == "forward" else 1.5) if far is None else far
+    points = read_colmap_points(root / "sparse" / "0", torch.from_numpy(world_from_capture))
     return Scene(splits=splits, near=near, far=far, background=torch.zeros(3), source=str(root),
-                 world_from_capture=torch.from_numpy(world_from_capture).float())
+                 world_from_capture=torch.from_numpy(world_from_capture).float(), points=points)

@@ -18,10 +18,8 @@ def export(cfg: DictConfig) -> Path:
     check_export_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.checkpoints import load_model
-    from nerf_lightning.outputs.export import EXPORT_FORMATS, export_model
+    from nerf_lightning.outputs.export import export_model
 
-    if str(cfg.format) not in EXPORT_FORMATS:
-        raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got '{cfg.format}'")
     model, _ = load_model(cfg.ckpt_path, cfg.device, trust=cfg.trust_checkpoint)
     output_dir = ensure_writable(cfg.output_dir, "output_dir")
     return export_model(model, cfg.format, output_dir, cfg)

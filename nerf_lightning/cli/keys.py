@@ -28,7 +28,7 @@ DEVICE_CHOICES = "auto, cpu, cuda, cuda:<index> or mps"
 DEVICE_FORM = re.compile(r"auto|cpu(:0)?|cuda(:\d+)?|mps(:0)?")
 SPLITS = ("test", "val")
 RENDER_PATHS = ("test", "orbit", "spiral")  # as nerf_lightning.data's render paths
-MESH_FORMATS = ("ply", "obj", "glb")  # as nerf_lightning.outputs.export.EXPORT_FORMATS: a new format is added here too
+EXPORT_FORMATS = ("ply", "obj", "glb")  # the names of nerf_lightning.outputs.export.EXPORT_FORMATS (a test holds them equal)
 MESH_FRAMES = ("capture", "scene")
 VIZ_BACKENDS = ("png", "viser")
 MATCHERS = ("auto", "exhaustive", "sequential")  # as nerf_lightning.data.capture.colmap
@@ -180,12 +180,14 @@ def check_port(cfg, key: str) -> None:
 def check_train_keys(cfg: DictConfig) -> None:
     """nerf-train's own top-level keys (the model, data, trainer and callbacks, the live viewer among them, check
     theirs when built; whether ``ckpt_path`` exists is checked by the training before it loads anything)."""
+    check_bool(cfg, "trust_checkpoint")
     check_text(cfg, "name", "a run name (the run folder is outputs/<name>/<time>)")
     check_integer(cfg, "seed", *SEED_RANGE)
     check_text(cfg, "ckpt_path", "a checkpoint to resume from, such as <run>/checkpoints/last.ckpt", null=True)
 
 
 def check_render_keys(cfg: DictConfig) -> None:
+    check_bool(cfg, "trust_checkpoint")
     check_device(cfg)
     check_number(cfg, "render.scale", above=0.0)
     check_choice(cfg, "render.path", RENDER_PATHS)
@@ -195,6 +197,7 @@ def check_render_keys(cfg: DictConfig) -> None:
 
 
 def check_eval_keys(cfg: DictConfig) -> None:
+    check_bool(cfg, "trust_checkpoint")
     check_device(cfg)
     check_choice(cfg, "split", SPLITS)
     check_text(cfg, "root", "a transforms.json (or its folder) of the same capture", null=True)
@@ -202,6 +205,7 @@ def check_eval_keys(cfg: DictConfig) -> None:
 
 
 def check_view_keys(cfg: DictConfig) -> None:
+    check_bool(cfg, "trust_checkpoint")
     check_device(cfg)
     check_text(cfg, "host", "an address to serve the page on, such as 127.0.0.1 or 0.0.0.0")
     check_port(cfg, "port")
@@ -210,12 +214,13 @@ def check_view_keys(cfg: DictConfig) -> None:
 
 
 def check_export_keys(cfg: DictConfig) -> None:
+    check_bool(cfg, "trust_checkpoint")
     check_device(cfg)
     check_bounds(cfg)
     check_choice(cfg, "frame", MESH_FRAMES)
     check_integer(cfg, "resolution", 2)
     check_number(cfg, "threshold")
-    check_choice(cfg, "format", MESH_FORMATS)
+    check_choice(cfg, "format", EXPORT_FORMATS)
     check_keep(cfg)
 
 

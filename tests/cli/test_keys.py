@@ -61,6 +61,8 @@ WRONG = [
     ("nerf-view", "view.max_resolution=4", ["view.max_resolution must be an integer >= 8", "got 4"]),
     ("nerf-view", "device=cuda0", ["device must be", "got 'cuda0'"]),
     ("nerf-export", "format=stl", ["format must be ply, obj or glb", "got 'stl'"]),
+    ("nerf-render", "trust_checkpoint=maybe", ["trust_checkpoint must be true or false", "got 'maybe'"]),
+    ("nerf-eval", "trust_checkpoint=1", ["trust_checkpoint must be true or false", "got 1"]),
     ("nerf-export", "resolution=1", ["resolution must be an integer >= 2", "got 1"]),
     ("nerf-export", "resolution=high", ["resolution must be an integer >= 2", "got 'high'"]),
     ("nerf-export", "threshold=high", ["threshold must be a number", "got 'high'"]),
@@ -235,7 +237,7 @@ def test_the_name_lists_agree_with_the_library():
     from nerf_lightning.outputs.mesh import parse_keep
 
     assert (keys.MATCHERS, keys.MAPPERS, keys.CAMERA_MODELS) == (MATCHERS, MAPPERS, CAMERA_MODELS)
-    assert keys.MESH_FORMATS == tuple(EXPORT_FORMATS)
+    assert keys.EXPORT_FORMATS == tuple(EXPORT_FORMATS)
     assert keys.DEVICE_CHOICES == DEVICE_CHOICES
     for keep in ("largest", "all", "ALL", 1, 100, "100", 0, -1, "biggest", 1.5, True, None):
         try:

@@ -1,5 +1,12 @@
-"""Rendering: samplers (rays -> packed samples), the occupancy grid, and volume rendering of the samples."""
+"""Rendering: samplers (rays -> packed samples), the occupancy grid, compositing weights, and volume rendering of the samples."""
 
+from nerf_lightning.rendering.compositing import (
+    Compositing,
+    weights_from_alpha,
+    weights_from_alpha_packed,
+    weights_from_optical_depth,
+    weights_from_optical_depth_packed,
+)
 from nerf_lightning.rendering.occupancy import OccupancyGrid, march_rays
 from nerf_lightning.rendering.packed import composite_packed, exclusive_sum_packed
 from nerf_lightning.rendering.renderer import VolumeRenderer
@@ -15,6 +22,7 @@ from nerf_lightning.rendering.samplers import (
 from nerf_lightning.rendering.volume import composite, render_weights, transmittance
 
 __all__ = [
-    "HierarchicalSampler", "OccupancyGrid", "OccupancyGridSampler", "ProposalSampler", "RaySampler", "RaySamples", "StratifiedSampler", "VolumeRenderer",
+    "Compositing", "HierarchicalSampler", "OccupancyGrid", "OccupancyGridSampler", "ProposalSampler", "RaySampler", "RaySamples", "StratifiedSampler", "VolumeRenderer",
     "composite", "composite_packed", "exclusive_sum_packed", "march_rays", "render_weights", "sample_pdf", "transmittance",
+    "weights_from_alpha", "weights_from_alpha_packed", "weights_from_optical_depth", "weights_from_optical_depth_packed",
 ]

@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import nn
 
-from nerf_lightning.rendering.packed import exclusive_sum_packed
+from nerf_lightning.rendering.compositing import weights_from_optical_depth_packed
 from nerf_lightning.rendering.packed import RaySamples
 
 # points (M, 3) -> densities (M,)
@@ -206,8 +206,6 @@ def march_rays(
     with torch.no_grad():
         t_mid = 0.5 * (samples.t_starts + samples.t_ends)
         density = density_fn(to_field(rays_o[ray_indices] + rays_d[ray_indices] * t_mid[:, None]))
-        optical_depth = density * (samples.t_ends - samples.t_starts)
-        alpha = 1.0 - torch.exp(-optical_depth)
-        transmittance = torch.exp(-exclusive_sum_packed(optical_depth, ray_indices, n_rays))
-        keep = (alpha >= alpha_threshold) & (transmittance >= early_stop_eps)
+        composited = weights_from_optical_depth_packed(density * (samples.t_ends - samples.t_starts), ray_indices, n_rays)
+        keep = (composited.alpha >= alpha_threshold) & (composited.transmittance >= early_stop_eps)
     return RaySamples(ray_indices[keep], samples.t_starts[keep], samples.t_ends[keep], n_rays)

@@ -2,7 +2,8 @@
 
 A batch of N rays with M samples in all is described by ``ray_indices`` (M,) (the ray each sample belongs to,
 non-decreasing: a ray's samples are contiguous and ordered by distance), ``t_starts`` and ``t_ends`` (M,) (the
-interval each sample stands for). Sums over a ray's samples are segment sums, done with ``index_add``.
+interval each sample stands for). Sums over a ray's samples are segment sums, done with ``index_add``; the weights
+are :mod:`nerf_lightning.rendering.compositing`'s (which also holds :func:`exclusive_sum_packed`).
 """
 
 from __future__ import annotations
@@ -11,6 +12,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+
+from nerf_lightning.rendering.compositing import exclusive_sum_packed, weights_from_optical_depth_packed
+
+__all__ = ["RaySamples", "composite_packed", "exclusive_sum_packed"]
 
 
 @dataclass
@@ -42,21 +47,6 @@ class RaySamples:
         return cls(ray_indices, edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1), n_rays, dict(extras))
 
 
-def exclusive_sum_packed(values: torch.Tensor, ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
-    """(M,) values -> (M,) the sum of the earlier values of the same ray (0 for a ray's first sample).
-
-    Each ray's values are laid out in a row of an (N, longest ray) table and summed along the row, so every sum
-    restarts at its ray and adds up only that ray's values: float32 is as exact as the values themselves (a
-    running sum over the whole batch, less each ray's start, loses the small terms of later rays to the large total).
-    """
-    if values.numel() == 0:
-        return values.clone()
-    counts = torch.bincount(ray_indices, minlength=n_rays)
-    rank = torch.arange(values.shape[0], device=values.device) - (torch.cumsum(counts, 0) - counts)[ray_indices]  # (M,) within its ray
-    table = values.new_zeros(n_rays, int(counts.max()) + 1).index_put((ray_indices, rank + 1), values)
-    return table.cumsum(dim=1)[ray_indices, rank]
-
-
 def composite_packed(
     rgb: torch.Tensor,
     density: torch.Tensor,
@@ -83,10 +73,7 @@ def composite_packed(
     dtype = torch.promote_types(rgb.dtype, torch.float32)  # half colours or densities (mixed precision) composite in float32
     rgb, density = rgb.to(dtype), density.to(dtype)
     optical_depth = density * (t_ends - t_starts).to(dtype)
-    transmittance = torch.exp(-exclusive_sum_packed(optical_depth, ray_indices, n_rays))
-    if transmittance_before is not None:
-        transmittance = transmittance_before[ray_indices] * transmittance
-    weights = transmittance * (1.0 - torch.exp(-optical_depth))
+    weights = weights_from_optical_depth_packed(optical_depth, ray_indices, n_rays, transmittance_before).weights
     accumulation = rgb.new_zeros(n_rays).index_add(0, ray_indices, weights)
     colour = rgb.new_zeros(n_rays, 3).index_add(0, ray_indices, weights[:, None] * rgb)
     if background is not None:

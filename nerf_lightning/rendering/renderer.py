@@ -8,19 +8,21 @@ import torch
 
 from nerf_lightning.fields.base import Field
 from nerf_lightning.geometry.space import Rays, SceneSpace
+from nerf_lightning.rendering.compositing import weights_from_optical_depth
 from nerf_lightning.rendering.packed import RaySamples
 
 
 class VolumeRenderer:
-    """Volume rendering of packed samples (:mod:`nerf_lightning.rendering.volume`'s quadrature), in rounds.
+    """Volume rendering of packed samples (:mod:`nerf_lightning.rendering.compositing`'s weights), in rounds.
 
     The field is evaluated on the next ``samples_per_round`` samples of every ray still alive at a time; a ray
     leaves once its transmittance is below ``early_stop_eps``, so the samples behind an opaque surface are never
     evaluated (on a CPU most of a marched ray's cost) and no separate density pass is needed. With
     ``early_stop_eps=0`` the result equals compositing every sample (:func:`~nerf_lightning.rendering.packed.composite_packed`).
 
-    Each round lays its samples out as an (alive rays, samples_per_round) table, so that the sums along a ray are
-    short float32 cumulative sums that restart at every ray.
+    Each round lays its samples out as an (alive rays, samples_per_round) table of dense rows, so that the sums along
+    a ray are short float32 cumulative sums that restart at every ray; each row carries in the transmittance its ray
+    left the previous round with.
 
     ``gradient_scaling_distance`` d > 0 (Floaters No More, Philip & Deschaintre 2023; nerfstudio's
     ``use_gradient_scaling``): in training, the gradients reaching the field from a sample at distance t < d are
@@ -81,12 +83,12 @@ class VolumeRenderer:
                 out = {"density": scale_gradient(out["density"], scale), "rgb": scale_gradient(out["rgb"], scale[:, None])}
             optical_depth = torch.zeros(valid.shape, dtype=colour.dtype, device=device).masked_scatter(valid, (out["density"] * (ends - starts)).to(colour.dtype))
             rgb = torch.zeros(*valid.shape, 3, dtype=colour.dtype, device=device).masked_scatter(valid[..., None], out["rgb"].to(colour.dtype))
-            depth_along = optical_depth.cumsum(dim=1)  # (A, k) inclusive
-            weights = transmittance[ray_ids, None] * torch.exp(optical_depth - depth_along) * (1.0 - torch.exp(-optical_depth))
+            composited = weights_from_optical_depth(optical_depth, transmittance[ray_ids])
+            weights = composited.weights  # (A, k)
             colour = colour.index_add(0, ray_ids, (weights[..., None] * rgb).sum(dim=1))
             accumulation = accumulation.index_add(0, ray_ids, weights.sum(dim=1))
             depth_sum = depth_sum.index_add(0, ray_ids, (weights * torch.zeros_like(weights).masked_scatter(valid, mids)).sum(dim=1))
-            transmittance = transmittance.index_copy(0, ray_ids, transmittance[ray_ids] * torch.exp(-depth_along[:, -1]))
+            transmittance = transmittance.index_copy(0, ray_ids, composited.transmittance_after)
             evaluated_ids.append(ids)
             evaluated_weights.append(weights[valid])
         colour = colour + (1.0 - accumulation)[:, None] * space.background.to(colour)

@@ -1,12 +1,8 @@
-"""Discrete volume rendering (NeRF's quadrature), no hidden state.
+"""Discrete volume rendering (NeRF's quadrature) of dense rays: N rays of S samples each, no hidden state.
 
-A ray crosses S intervals of lengths delta_i (units of the ray direction's length) with constant density
-sigma_i and colour c_i inside each. Then
-
-    alpha_i = 1 - exp(-sigma_i delta_i)                         the chance the ray ends inside interval i
-    T_i     = exp(-sum_{j<i} sigma_j delta_j)                   the chance it reaches interval i (exclusive)
-    w_i     = T_i alpha_i                                       the chance it ends in interval i
-    C       = sum_i w_i c_i + (1 - sum_i w_i) background
+A ray crosses S intervals of lengths delta_i (units of the ray direction's length) with constant density sigma_i
+and colour c_i inside each; the weights w_i are :mod:`nerf_lightning.rendering.compositing`'s (the maths is stated
+there), and C = sum_i w_i c_i + (1 - sum_i w_i) background.
 
 Every function is differentiable in density and colour.
 """
@@ -15,17 +11,17 @@ from __future__ import annotations
 
 import torch
 
+from nerf_lightning.rendering.compositing import weights_from_optical_depth
+
 
 def transmittance(density: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
     """Exclusive transmittance T_i: (..., S) densities and interval lengths -> (..., S), T_0 = 1."""
-    optical_depth = density * deltas
-    return torch.exp(-torch.cumsum(torch.cat([torch.zeros_like(optical_depth[..., :1]), optical_depth[..., :-1]], dim=-1), dim=-1))
+    return weights_from_optical_depth(density * deltas).transmittance
 
 
 def render_weights(density: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
     """Weights w_i = T_i (1 - exp(-sigma_i delta_i)): (..., S) -> (..., S); they sum to the accumulation <= 1."""
-    alpha = 1.0 - torch.exp(-density * deltas)
-    return transmittance(density, deltas) * alpha
+    return weights_from_optical_depth(density * deltas).weights
 
 
 def composite(

@@ -200,6 +200,10 @@ def test_a_baked_proposal_network_matches_the_network_at_its_vertices_and_is_use
     rays = camera_rays(space)
     sampler = ProposalSampler([network, small_density_field()], proposal_samples=(32, 16), field_samples=12, bake_resolution=16)
     sampler.update(10_000, None)
+    with torch.no_grad():  # a module still training (the live viewer renders between steps): nothing baked
+        sampler.sample(rays, space, None, perturb=False)
+    assert not sampler._bakes
+    sampler.eval()
     with torch.no_grad():
         evaluated = sampler.sample(rays, space, None, perturb=False)
     assert_packed_in_range(evaluated, 2.0, 6.0)
@@ -210,6 +214,7 @@ def test_a_baked_proposal_network_matches_the_network_at_its_vertices_and_is_use
         network.encoding.table.mul_(2.0)
     assert sampler.baked(0) is not first  # made again once they change
     sampler._bakes.clear()
+    sampler.train()
     sampler.sample(rays, space, None, perturb=True)  # training: the networks themselves, nothing baked
     assert not sampler._bakes
 

@@ -1,8 +1,9 @@
 """Lightning callbacks: snapshots of validation renders, PSNR history and curve, the run's config in checkpoints, a
-progress bar counted in optimiser steps."""
+progress bar counted in optimiser steps, the live view in the browser."""
 
 from __future__ import annotations
 
+import logging
 import time
 from datetime import timedelta
 from pathlib import Path
@@ -21,8 +22,11 @@ from nerf_lightning.checkpoints import CHECKPOINT_FORMAT
 from nerf_lightning.devices import synchronize
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.models.contract import RendersCamera
 from nerf_lightning.plots import plot_psnr_curves
 from nerf_lightning.video import write_gif
+
+log = logging.getLogger(__name__)
 
 
 class TrainingClock:
@@ -309,3 +313,99 @@ def history_psnr(history: dict[str, list[float]]) -> tuple[list[float], list[flo
 
 
 __all__ = ["RunConfigInCheckpoint", "Snapshots", "StepProgressBar", "history_psnr"]
+
+
+class LiveViewer(L.Callback):
+    """nerf-train ``viewer=live``: the model in the browser while it trains, rendered between training steps
+    (:class:`~nerf_lightning.viz.viewer.FieldViewer`; viser, extra ``viz``).
+
+    Rendering takes at most ``time_share`` of the time since training started (a frame is skipped while the share is
+    spent); frames are refined only up to what ``max_frame_s`` renders, and a camera that stays still is rendered
+    again every ``refresh_s`` seconds, since the model changes; the overlays shown are drawn again every
+    ``5 * refresh_s`` seconds. Frames are rendered without gradients, the module left in training mode (nothing of a
+    render may outlive the step: the proposal sampler does not bake while the module trains). A browser that leaves
+    costs nothing; an error in the viewer is logged once and training goes on without it.
+
+    Args:
+        host, port: where the page is served; checked when the callback is made, before any data is loaded.
+        output_dir: the run's folder; the page's Render button writes GIFs to ``<output_dir>/renders/``.
+    """
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, output_dir: str | Path = ".", time_share: float = 0.1,
+                 moving_frame_s: float = 0.1, max_resolution: int = 512, max_frame_s: float = 1.0, refresh_s: float = 2.0) -> None:
+        # imported here: viser is an optional extra, and only this callback needs it
+        from nerf_lightning.viz.viser_view import check_port, require_viser
+
+        if not 0.0 < time_share < 1.0:
+            raise ValueError(f"callbacks.viewer.time_share must lie between 0 and 1, got {time_share}")
+        require_viser()
+        check_port(host, port, "callbacks.viewer.port")
+        self.host, self.port, self.output_dir, self.time_share = host, int(port), Path(output_dir), float(time_share)
+        self.options = dict(moving_frame_s=moving_frame_s, max_resolution=max_resolution, max_frame_s=max_frame_s, refresh_s=refresh_s)
+        self.overlays_every_s = 5.0 * refresh_s
+        self.viewer = None
+        self.server = None
+        self.rendering_seconds = 0.0
+        self._started: float | None = None
+        self._overlays_drawn_at = 0.0
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if not isinstance(pl_module, RendersCamera):
+            raise ValueError(f"viewer=live shows a model that renders a camera; this run trains a {type(pl_module).__name__}, "
+                             "which renders none: leave viewer out, or train a radiance field (experiment=fast, ...)")
+        if stage != "fit" or not trainer.is_global_zero or self.server is not None:
+            return
+        from nerf_lightning.viz.viewer import FieldViewer
+        from nerf_lightning.viz.viser_view import start_server
+
+        self.server = start_server(self.host, self.port, "callbacks.viewer.")
+        datamodule = trainer.datamodule
+        datamodule.setup("fit")
+        self.viewer = FieldViewer(self.server, pl_module, datamodule.scene.train, datamodule.render_views,
+                                  self.output_dir / "renders", **self.options)
+        log.info("live view of the training field at http://%s:%d", self.host, self.port)
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._started = time.perf_counter()
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if self.viewer is None or self._started is None:
+            return
+        elapsed = time.perf_counter() - self._started
+        if self.rendering_seconds > self.time_share * elapsed:
+            return
+        if not self.server.get_clients() and not self.viewer.path_requested:
+            return
+        started = time.perf_counter()
+        try:
+            with torch.no_grad():
+                if time.monotonic() - self._overlays_drawn_at > self.overlays_every_s:
+                    self.viewer.page.redraw_overlays()  # an occupancy grid changes as the field trains
+                    self._overlays_drawn_at = time.monotonic()
+                self.viewer.render_next()
+            psnr = trainer.callback_metrics.get("train/psnr")
+            self.viewer.show_training(f"training: step {trainer.global_step}" + ("" if psnr is None else f", train PSNR {float(psnr):.2f} dB")
+                                      + f"; {self.viewer.frames_rendered} frames rendered")
+        except Exception as error:  # the view is a convenience: training never stops for it
+            log.warning("the live viewer stopped (%s: %s); training goes on without it", type(error).__name__, error)
+            self.close()
+        finally:
+            self.rendering_seconds += time.perf_counter() - started
+
+    def close(self) -> None:
+        if self.viewer is not None and self._started is not None:
+            elapsed = max(time.perf_counter() - self._started, 1e-9)
+            log.info("live viewer: %d frames, %.1f s of rendering, %.1f%% of training", self.viewer.frames_rendered,
+                     self.rendering_seconds, 100.0 * self.rendering_seconds / elapsed)
+        if self.server is not None:
+            try:
+                self.server.stop()
+            except Exception:  # stopping a server that failed: nothing more to report
+                pass
+        self.viewer, self.server = None, None
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        self.close()
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self.close()

@@ -27,30 +27,39 @@ def run_dir_of(ckpt_path: str | Path) -> Path:
 OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path)), replace=True)
 
 
-# Keys of nerf-lightning 0.1 that 0.2 moved (samplers and the scene space became objects): old key -> (the key now, a
-# note), where the rest of a longer old key carries over to the new one
+# Why keys moved, by release (see the README's "Changes" sections)
+OBJECTS_02 = "in nerf-lightning 0.2, when samplers and the scene space became objects"
+VIEWER_03 = "in nerf-lightning 0.3, when the live viewer became a callback"
+
+# Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
-    "model.fine_field": ("model.sampler.coarse_field", "with model/sampler=hierarchical"),
-    "model.n_samples": ("model.sampler.n_samples", ""),
-    "model.n_fine_samples": ("model.sampler.n_fine_samples", "with model/sampler=hierarchical"),
-    "model.occupancy_grid": ("model.sampler.grid", "with model/sampler=occupancy_grid"),
-    "model.render_step_size": ("model.sampler.step_size", ""),
-    "model.cone_angle": ("model.sampler.cone_angle", ""),
-    "model.alpha_threshold": ("model.sampler.alpha_threshold", ""),
-    "model.early_stop_eps": ("model.renderer.early_stop_eps", ""),
-    "model.samples_per_round": ("model.renderer.samples_per_round", ""),
-    "model.field.contracted": ("data.contract", "with model.field.aabb=[-2,-2,-2,2,2,2], the contraction's cube"),
-    **{f"model.field.{key}": (f"model.field.encoding.{key}", "")
+    "model.fine_field": ("model.sampler.coarse_field", "with model/sampler=hierarchical", OBJECTS_02),
+    "model.n_samples": ("model.sampler.n_samples", "", OBJECTS_02),
+    "model.n_fine_samples": ("model.sampler.n_fine_samples", "with model/sampler=hierarchical", OBJECTS_02),
+    "model.occupancy_grid": ("model.sampler.grid", "with model/sampler=occupancy_grid", OBJECTS_02),
+    "model.render_step_size": ("model.sampler.step_size", "", OBJECTS_02),
+    "model.cone_angle": ("model.sampler.cone_angle", "", OBJECTS_02),
+    "model.alpha_threshold": ("model.sampler.alpha_threshold", "", OBJECTS_02),
+    "model.early_stop_eps": ("model.renderer.early_stop_eps", "", OBJECTS_02),
+    "model.samples_per_round": ("model.renderer.samples_per_round", "", OBJECTS_02),
+    "model.field.contracted": ("data.contract", "with model.field.aabb=[-2,-2,-2,2,2,2], the contraction's cube", OBJECTS_02),
+    **{f"model.field.{key}": (f"model.field.encoding.{key}", "", OBJECTS_02)
        for key in ("n_levels", "features_per_level", "log2_table_size", "base_resolution", "max_resolution")},
+    **{f"viewer_{key}": (f"callbacks.viewer.{key}", "with viewer=live", VIEWER_03) for key in ("host", "port", "time_share")},
 }
 
 
 def renamed_key_message(overrides: Sequence[str]) -> str | None:
-    """The first command-line override that uses a key 0.2 moved, as a sentence saying what to write instead; or None."""
+    """The first command-line override that uses a key that moved, as a sentence saying what to write instead; or None."""
     for override in overrides:
-        key = override.split("=", 1)[0].lstrip("+~").split("@", 1)[0]
-        for old, (new, note) in RENAMED_KEYS.items():
+        key, _, value = override.partition("=")
+        key = key.lstrip("+~").split("@", 1)[0]
+        if key == "viewer" and value.strip().lower() in ("true", "false", "yes", "no", "on", "off", "1", "0"):
+            # Hydra takes a config group's choice as a name, and true is not one
+            return (f"'viewer={value}' was replaced {VIEWER_03} (see the README): use viewer=live for the live view, "
+                    "or leave viewer out for none")
+        for old, (new, note, why) in RENAMED_KEYS.items():
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")
-                return f"'{key}' was moved in nerf-lightning 0.2, when samplers and the scene space became objects (see the README): use {now}"
+                return f"'{key}' was moved {why} (see the README): use {now}"
     return None

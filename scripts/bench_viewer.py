@@ -4,7 +4,7 @@
         --out docs/bench/viewer_lego_cpu.json
 
 1. Trains ``experiment=<--preset>`` (default ``fast_blender``, lego at 200x200) for ``--minutes`` (or takes ``--ckpt``).
-2. Renders, as the viewer does (:func:`nerf_lightning.rendering.views.render_view` from a browser camera with a 4:3
+2. Renders, as the viewer does (the model's `render_view` from a browser camera with a 4:3
    canvas), ``--views`` evenly spaced val cameras of lego at each height of ``--heights``, and a 200x200 frame (the
    course's size); the median seconds a frame and rays a second of each, after one warm-up frame.
 3. The progressive heights the viewer would choose on this machine (:func:`progressive_heights`, from the measured
@@ -36,7 +36,7 @@ from nerf_lightning.data.formats import load_blender  # noqa: E402
 from nerf_lightning.data.scene import evenly_spaced  # noqa: E402
 from nerf_lightning.devices import resolve_device, synchronize  # noqa: E402
 
-from nerf_lightning.viz.viewer import browser_camera, progressive_heights  # noqa: E402
+from nerf_lightning.viz.scheduler import browser_camera, progressive_heights  # noqa: E402
 
 ASPECT = 4.0 / 3.0  # a browser canvas
 

@@ -1,0 +1,152 @@
+"""The viewer's page in the browser (viser): the scene around the render and the controls beside it.
+
+The scene: the training cameras as frustums showing their images (click one to look through it), the render path in
+orange, and whatever the model offers to draw (:class:`~nerf_lightning.models.contract.ShowsOverlays`: a checkbox
+each; none for a model that offers nothing). The controls: what to show (rgb, depth, accumulation), the largest
+height of a frame, the render path and its Render-to-GIF button, a line on the last frame and one on training.
+
+The page renders nothing: it tells its owner what changed through the callbacks it is given.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from nerf_lightning.data.scene import Views
+from nerf_lightning.models.contract import Overlay, ShowsOverlays
+from nerf_lightning.viz.viser_view import add_training_cameras, scene_frame
+
+OUTPUTS = ("rgb", "depth", "accumulation")
+PATHS = ("orbit", "spiral", "test")
+PATH_COLOUR = (230, 140, 20)
+
+
+class ViewerPage:
+    """The scene and the controls of the viewer on a viser ``server``.
+
+    Args:
+        server: a ``viser.ViserServer``.
+        model: asked for its overlays when it is :class:`~nerf_lightning.models.contract.ShowsOverlays`, nothing else.
+        train_views: the training cameras and images, drawn as frustums; where the view starts.
+        render_views: ``(path, frames) -> Views``, the cameras of a render path (a DataModule's ``render_views``).
+        max_resolution: the initial value of the "Max height" slider.
+        on_view_changed: called when what a frame shows changes (the output, the largest height).
+        on_render_path: called with (path, frames, scale) when the Render-to-GIF button is pressed.
+    """
+
+    def __init__(self, server, model, train_views: Views, render_views: Callable[[str, int], Views], max_resolution: int,
+                 on_view_changed: Callable[[], None], on_render_path: Callable[[str, int, float], None]) -> None:
+        self.server, self.model, self.train_views, self.render_views = server, model, train_views, render_views
+        self._on_view_changed, self._on_render_path = on_view_changed, on_render_path
+        self.overlay_handles: dict[str, object] = {}
+        self._build_scene()
+        self._build_gui(max_resolution)
+
+    # -- building ------------------------------------------------------------------------------------------------
+
+    def _build_scene(self) -> None:
+        train = self.train_views
+        centre, radius, up = scene_frame(train.c2w)
+        self.radius = radius
+        self.server.scene.set_up_direction(up.double().numpy())
+        # start where the first training camera is, looking where the cameras look
+        self.server.initial_camera.position = train.c2w[0, :3, 3].double().numpy()
+        self.server.initial_camera.look_at = centre.double().numpy()
+        self.server.initial_camera.fov = 2.0 * math.atan(0.5 * train.height / float(train.K[0, 1, 1]))
+        self.frustums = add_training_cameras(self.server, train, radius, thumbnail_height=96)
+        for index, frustum in enumerate(self.frustums):
+            frustum.on_click(lambda event, index=index: self.look_through(event.client, index))
+
+    def _build_gui(self, max_resolution: int) -> None:
+        gui = self.server.gui
+        with gui.add_folder("View"):
+            self.output = gui.add_dropdown("Show", OUTPUTS, initial_value="rgb")
+            self.max_resolution = gui.add_slider("Max height (px)", min=32, max=2048, step=16, initial_value=min(2048, max_resolution))
+            self.stats = gui.add_markdown("waiting for the first frame")
+        names = self.model.overlay_names() if isinstance(self.model, ShowsOverlays) else {}
+        with gui.add_folder("Scene"):
+            self.show_cameras = gui.add_checkbox("Training cameras", initial_value=True)
+            self.overlay_boxes = {name: gui.add_checkbox(label, initial_value=False) for name, label in names.items()}
+        with gui.add_folder("Render path"):
+            self.path = gui.add_dropdown("Path", PATHS, initial_value="orbit")
+            self.path_frames = gui.add_number("Frames", initial_value=60, min=2, max=1000, step=1)
+            self.path_scale = gui.add_number("Scale", initial_value=1.0, min=0.05, max=4.0, step=0.05)
+            self.render_button = gui.add_button("Render to GIF")
+            self.path_status = gui.add_markdown("")
+        self.training = gui.add_markdown("")
+
+        for control in (self.output, self.max_resolution):
+            control.on_update(lambda _: self._on_view_changed())
+        self.show_cameras.on_update(lambda _: self.set_cameras_visible(self.show_cameras.value))
+        for name, box in self.overlay_boxes.items():
+            box.on_update(lambda _, name=name: self.draw_overlay(name))
+        for control in (self.path, self.path_frames):
+            control.on_update(lambda _: self.draw_path())
+        self.render_button.on_click(lambda _: self._render_pressed())
+        self.draw_path()
+
+    # -- the scene -----------------------------------------------------------------------------------------------
+
+    def set_cameras_visible(self, visible: bool) -> None:
+        for frustum in self.frustums:
+            frustum.visible = visible
+
+    def draw_path(self) -> None:
+        """Draw the chosen render path: a line through its cameras, a point at each."""
+        try:
+            views = self.render_views(self.path.value, int(self.path_frames.value))
+        except ValueError as error:
+            self.path_status.content = f"no {self.path.value} path: {error}"
+            return
+        positions = views.c2w[:, :3, 3].float()
+        segments = torch.stack([positions[:-1], positions[1:]], dim=1).numpy()
+        self.server.scene.add_line_segments("/render_path/line", points=segments, colors=PATH_COLOUR, thickness=3.0,
+                                            thickness_units="screen")
+        self.server.scene.add_point_cloud("/render_path/cameras", points=positions.numpy(), colors=PATH_COLOUR,
+                                          point_size=0.02 * self.radius)
+
+    def draw_overlay(self, name: str) -> None:
+        """Draw the model's overlay ``name`` as it is now if its box is checked; remove it otherwise."""
+        handle = self.overlay_handles.pop(name, None)
+        if handle is not None:
+            handle.remove()
+        overlay = self.model.overlay(name) if self.overlay_boxes[name].value else None
+        if overlay is not None and len(overlay.points):
+            self.overlay_handles[name] = self._add_overlay(f"/overlays/{name}", overlay)
+
+    def redraw_overlays(self) -> None:
+        """Draw again every checked overlay (the live view: the model changes as it trains)."""
+        for name, box in self.overlay_boxes.items():
+            if box.value:
+                self.draw_overlay(name)
+
+    def _add_overlay(self, node: str, overlay: Overlay):
+        points = np.asarray(overlay.points, dtype=np.float32)
+        if overlay.kind == "lines":
+            return self.server.scene.add_line_segments(node, points=points, colors=overlay.colour, thickness=overlay.size,
+                                                       thickness_units="screen")
+        if overlay.kind == "points":
+            return self.server.scene.add_point_cloud(node, points=points, colors=overlay.colour, point_size=overlay.size,
+                                                     point_shape="square")
+        raise ValueError(f"an overlay is lines or points, not '{overlay.kind}' ({overlay.label})")
+
+    def look_through(self, client, index: int) -> None:
+        """Put ``client``'s camera where training camera ``index`` is, looking where it looks."""
+        c2w = self.train_views.c2w[index].double()
+        position, forward = c2w[:3, 3], c2w[:3, 2]
+        fov_y = 2.0 * math.atan(0.5 * self.train_views.height / float(self.train_views.K[index, 1, 1]))
+        with client.atomic():
+            client.camera.fov = fov_y
+            client.camera.position = position.numpy()
+            client.camera.look_at = (position + self.radius * forward).numpy()
+            client.camera.up_direction = (-c2w[:3, 1]).numpy()
+
+    # -- the controls ------------------------------------------------------------------------------------------
+
+    def _render_pressed(self) -> None:
+        self.path_status.content = f"rendering the {self.path.value} path..."
+        self._on_render_path(self.path.value, int(self.path_frames.value), float(self.path_scale.value))

@@ -6,35 +6,23 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
-from torch.utils.data import DataLoader
 
-from nerf_lightning.data.batches import StepBatchesDataModule
 from nerf_lightning.data.image_stack import as_float_rgb
-from nerf_lightning.data.scene import Scene, Views, evenly_spaced
-from nerf_lightning.geometry.paths import orbit_path, spiral_path
-from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.geometry.rays import image_rays, indexed_pixel_rays
+from nerf_lightning.data.scene import Scene
+from nerf_lightning.data.scene_data import SceneDataModule, view_batch
+from nerf_lightning.geometry.rays import indexed_pixel_rays
+
+__all__ = ["RayDataModule", "view_batch"]
 
 
-def view_batch(views: Views, index: int) -> dict[str, Any]:
-    """Every ray of one view, row-major: rays_o, rays_d (H*W, 3), rgb (H*W, 3) and depth (H*W,) where known."""
-    rays_o, rays_d = image_rays(views.K[index : index + 1], views.c2w[index : index + 1], views.height, views.width)
-    batch: dict[str, Any] = {"rays_o": rays_o[0], "rays_d": rays_d[0], "height": views.height, "width": views.width, "index": index}
-    if views.images is not None:
-        batch["rgb"] = as_float_rgb(views.images[index].reshape(-1, 3))
-    if views.depth is not None:
-        batch["depth"] = views.depth[index].reshape(-1)
-    return batch
-
-
-class RayDataModule(StepBatchesDataModule):
+class RayDataModule(SceneDataModule):
     """Each training step ``batch_size`` rays drawn uniformly, with replacement, over every pixel of every
-    training view, with their colours; validation on a few whole held-out views; a render path. ``setup`` loads the
-    :class:`Scene` and builds its :class:`~nerf_lightning.geometry.space.SceneSpace` (``space``), which the model
-    renders in.
+    training view, with their colours; the scene, its space, validation and render paths as every
+    :class:`~nerf_lightning.data.scene_data.SceneDataModule` has them.
 
     Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units), ``rgb``
-    (N, 3) in [0, 1] and ``camera_index`` (N,), the training view of each ray. Validation batch: :func:`view_batch` of one view. The loader yields only the drawn pixels'
+    (N, 3) in [0, 1] and ``camera_index`` (N,), the training view of each ray. Validation batch:
+    :func:`~nerf_lightning.data.scene_data.view_batch` of one view. The loader yields only the drawn pixels'
     indices (``pixel_index`` (N,)); once Lightning has moved them to the model's device,
     :meth:`on_after_batch_transfer` computes the rays there from the cameras of those pixels
     (:func:`~nerf_lightning.geometry.rays.indexed_pixel_rays`) and gathers their colours from the uint8 images,
@@ -43,18 +31,9 @@ class RayDataModule(StepBatchesDataModule):
     nothing per pixel besides.
 
     Args:
-        scene: loads the :class:`Scene` (a Hydra ``_partial_`` of a loader such as ``load_blender``).
-        root: the scene's folder (Blender) or file (npz), handed to ``scene`` as its first argument; None for
-            scenes that need none (the procedural one).
         batch_size: rays per training step.
-        val_views: how many held-out views to validate on (evenly spaced over the split).
-        val_split: ``val`` or ``test``: which held-out split validation uses (the other when it is absent).
-        render_path: ``test`` (the scene's render or test cameras), ``orbit`` or ``spiral``.
-        render_frames: frames of a generated orbit or spiral.
-        ndc: sample forward-facing scenes in normalised device coordinates (LLFF; cameras looking down -z).
-        contract: an unbounded scene: fields see all of space contracted into [-2, 2]^3 (real captures with
-            their background; the fields' and grids' ``aabb`` must be that cube).
-        val_steps, val_every, seed: see :class:`StepBatchesDataModule`.
+        scene, root, val_views, val_split, render_path, render_frames, ndc, contract, val_steps, val_every, seed:
+            see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
     def __init__(
@@ -72,25 +51,12 @@ class RayDataModule(StepBatchesDataModule):
         val_every: int | None = 500,
         seed: int = 0,
     ) -> None:
-        super().__init__(batch_size=batch_size, val_steps=val_steps, val_every=val_every, seed=seed)
-        if render_path not in ("test", "orbit", "spiral"):
-            raise ValueError(f"data.render_path must be test, orbit or spiral, got '{render_path}'")
-        self.load_scene = scene
-        self.root = root
-        self.val_views = val_views
-        self.val_split = val_split
-        self.render_path = render_path
-        self.render_frames = render_frames
-        self.ndc, self.contract = ndc, contract
-        self.scene: Scene | None = None
-        self.space: SceneSpace | None = None
-        self._on_device: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
+        super().__init__(scene=scene, root=root, batch_size=batch_size, val_views=val_views, val_split=val_split,
+                         render_path=render_path, render_frames=render_frames, ndc=ndc, contract=contract,
+                         val_steps=val_steps, val_every=val_every, seed=seed)
 
     def setup(self, stage: str | None = None) -> None:
-        if self.scene is not None:
-            return
-        self.scene = self.load_scene() if self.root is None else self.load_scene(self.root)
-        self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract)
+        super().setup(stage)
         self.rgb = self.scene.train.images.reshape(-1, 3)  # (N*H*W, 3) uint8, a view of the images (in memory or mapped): no copy
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -102,49 +68,8 @@ class RayDataModule(StepBatchesDataModule):
         if "pixel_index" not in batch:
             return batch  # a validation view, rays and all
         index = batch["pixel_index"]
-        K, c2w, rgb = self.cameras_and_images(index.device)
+        K, c2w, images = self.cameras_and_images(index.device)
         rays_o, rays_d = indexed_pixel_rays(K, c2w, self.scene.train.height, self.scene.train.width, index)
-        colours = self.rgb[index.cpu()].to(index.device, non_blocking=True) if rgb is None else rgb[index]
+        colours = self.rgb[index.cpu()].to(index.device, non_blocking=True) if images is None else images.reshape(-1, 3)[index]
         camera_index = index // (self.scene.train.height * self.scene.train.width)
         return {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours), "camera_index": camera_index}
-
-    def cameras_and_images(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """The training cameras K (V, 3, 3), c2w (V, 4, 4) and the uint8 colours (V*H*W, 3) on ``device``, moved
-        once; the colours None where they stay on the host (a GPU with too little free memory for them)."""
-        if device not in self._on_device:
-            train = self.scene.train
-            rgb: torch.Tensor | None = self.rgb
-            if device.type == "cuda":
-                free, _ = torch.cuda.mem_get_info(device)
-                rgb = self.rgb.to(device) if self.rgb.numel() < free / 4 else None
-            elif device.type != "cpu":
-                rgb = self.rgb.to(device) if self.rgb.numel() < 2 * 2**30 else None
-            self._on_device[device] = (train.K.to(device), train.c2w.to(device), rgb)
-        return self._on_device[device]
-
-    def validation_views(self) -> Views:
-        held_out = self.scene.held_out(self.val_split)
-        return held_out.subset(evenly_spaced(len(held_out), self.val_views))
-
-    def val_dataloader(self) -> DataLoader:
-        views = self.validation_views()
-        return DataLoader([view_batch(views, i) for i in range(len(views))], batch_size=None, num_workers=0)
-
-    def render_views(self, path: str | None = None, n_frames: int | None = None) -> Views:
-        """Cameras of a render path (no images): ``test`` (the scene's render split, else its test split),
-        ``orbit`` or ``spiral`` (the scene's own path of that name, as LLFF's spiral, else ``n_frames`` frames
-        around where the training cameras look)."""
-        path = path or self.render_path
-        n_frames = n_frames or self.render_frames
-        train = self.scene.train
-        if path == "test" or path in self.scene.splits:
-            if path == "test":
-                views = self.scene.splits.get("render") or self.scene.held_out("test")
-            else:
-                views = self.scene.splits[path]
-            return Views(K=views.K, c2w=views.c2w, height=views.height, width=views.width, names=views.names)
-        make = {"orbit": orbit_path, "spiral": spiral_path}.get(path)
-        if make is None:
-            raise ValueError(f"unknown render path '{path}': expected test, orbit or spiral")
-        c2w = make(train.c2w, n_frames)
-        return Views(K=train.K[:1].expand(n_frames, 3, 3).clone(), c2w=c2w, height=train.height, width=train.width)

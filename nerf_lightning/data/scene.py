@@ -1,4 +1,4 @@
-"""The one type every data format loads into: posed views, split, bounds and background."""
+"""The one type every data format loads into: posed views, split, bounds, background and sparse points."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.geometry.rays import image_rays
 
 
@@ -101,6 +102,8 @@ class Scene:
         world_from_capture: (4, 4) similarity from the file's coordinates to the scene's (where a loader
             normalised them), to map renders and meshes back; None for the identity.
         aabb_scale: instant-ngp's ``aabb_scale`` of the capture (how far beyond the unit box the scene reaches), if given.
+        points: the capture's sparse 3D points in the scene's world (``world_from_capture`` applied), where the
+            capture has them (a transforms.json's ``ply_file_path``, a COLMAP model beside an LLFF capture); None otherwise.
     """
 
     splits: dict[str, Views]
@@ -110,6 +113,7 @@ class Scene:
     source: str = ""
     world_from_capture: torch.Tensor | None = None
     aabb_scale: float | None = None
+    points: SparsePoints | None = None
 
     def __post_init__(self) -> None:
         if "train" not in self.splits or len(self.splits["train"]) == 0:

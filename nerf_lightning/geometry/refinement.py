@@ -6,6 +6,11 @@ six numbers, a rotation vector (so(3), turned into a rotation by the exponential
 about its camera centre, ``o' = o + t_i`` and ``d' = exp(w_i) d``: the same corrections as nerfstudio's
 ``c2w @ [exp(w), t]`` (a rotation about the camera centre, whatever frame it is written in), with the same norms
 for the penalties. Held-out and rendered views are not corrected: nothing learnt says how.
+
+Models that render whole views (splats) correct the cameras instead of the rays: :meth:`CameraRefinement.corrected_c2w`
+gives ``c2w' = [exp(w) R | c + t]`` (R, c: the camera's rotation and centre), which is nerfstudio's
+``c2w @ [exp(w'), t']`` with the correction written in the camera's frame (``w' = R^T w``, ``t' = R^T t``); the
+rays of ``c2w'`` are the rays :meth:`~CameraRefinement.forward` corrects, ``o + t`` and ``exp(w) d``.
 """
 
 from __future__ import annotations
@@ -38,6 +43,17 @@ class CameraRefinement(PerViewTable):
         deltas = self.rows[camera_indices]  # (N, 6)
         rotation = axis_angle_to_rotation_matrix(deltas[:, :3])  # (N, 3, 3)
         return rays_o + deltas[:, 3:], (rotation @ rays_d[..., None])[..., 0]
+
+    def corrected_c2w(self, c2w: torch.Tensor, camera_indices: torch.Tensor) -> torch.Tensor:
+        """(V', 4, 4) camera-to-world of training views and (V',) their views -> the corrected (V', 4, 4): rotation
+        ``exp(w) R``, centre ``c + t`` (the module's docstring), so that their rays equal :meth:`forward`'s."""
+        if c2w.shape[-2:] != (4, 4) or c2w.shape[:-2] != camera_indices.shape or c2w.dim() != 3:
+            raise ValueError(f"corrected_c2w needs c2w (V, 4, 4) and camera_indices (V,), got {tuple(c2w.shape)} and {tuple(camera_indices.shape)}")
+        self.check_views(camera_indices)
+        deltas = self.rows[camera_indices].to(c2w.dtype)  # (V, 6)
+        rotation = axis_angle_to_rotation_matrix(deltas[:, :3])  # (V, 3, 3)
+        top = torch.cat([rotation @ c2w[:, :3, :3], (c2w[:, :3, 3] + deltas[:, 3:])[..., None]], dim=-1)
+        return torch.cat([top, c2w[:, 3:]], dim=-2)
 
     def penalties(self) -> dict[str, torch.Tensor]:
         """``camera_rotation`` and ``camera_translation``: the weighted mean squared sizes of the corrections."""

@@ -1,7 +1,8 @@
-"""The shipped data configs build working ray DataModules from data.root alone."""
+"""The shipped data configs build working ray DataModules from data.root alone; the format presets share one ray block."""
 
 import torch
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from nerf_lightning.config import compose_config
 from nerf_lightning.data.formats import load_blender, save_npz
@@ -39,3 +40,20 @@ def test_data_procedural_is_the_default_radiance_scene(scene_cache, monkeypatch)
     data = build("data=procedural", "data.batch_size=32")
     assert len(data.scene.train) == 80 and data.scene.train.depth is not None
     assert len(data.render_views()) == 60  # an orbit
+
+
+def test_the_format_presets_are_the_shared_ray_block_with_their_own_values():
+    shared = {"_target_": "nerf_lightning.data.RayDataModule", "ndc": False, "contract": False, "batch_size": 10000, "val_views": 3,
+              "val_split": "val", "render_path": "test", "render_frames": 60, "val_steps": [], "val_every": 500, "seed": "${seed}"}
+    own = {"blender": {"root": "x"}, "npz": {"root": "x"},
+           "llff": {"root": "x", "batch_size": 4096, "render_path": "spiral", "render_frames": 120},
+           "transforms": {"root": "x", "batch_size": 4096, "val_views": 2, "render_path": "spiral", "render_frames": 120},
+           "procedural": {"render_path": "orbit"}}
+    for name, values in own.items():
+        root = ["data.root=x"] if "root" in values else []
+        data = OmegaConf.to_container(compose_config([f"data={name}", *root, "paths.output_dir=/tmp/unused"]).data)
+        assert data.pop("scene")["_target_"] == f"nerf_lightning.data.formats.load_{name}"
+        assert data == {**shared, **values}, name
+    # any format's scene under another datamodule
+    views = compose_config(["data=views", "data/scene=llff", "data.root=x", "paths.output_dir=/tmp/unused"]).data
+    assert views._target_ == "nerf_lightning.data.ViewDataModule" and views.scene.downscale == 8 and views.patch_size is None

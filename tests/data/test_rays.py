@@ -52,6 +52,7 @@ def test_validation_batches_are_whole_held_out_views(rays, procedural_scene):
     for index, batch in enumerate(batches):
         assert batch["rays_o"].shape == (100 * 100, 3) and batch["rgb"].shape == (100 * 100, 3)
         assert (batch["height"], batch["width"], batch["index"]) == (100, 100, index)
+        assert torch.equal(batch["K"], views.K[index]) and torch.equal(batch["c2w"], views.c2w[index])  # the camera, for models that render views
         torch.testing.assert_close(batch["rgb"].reshape(100, 100, 3), views.images[index].float() / 255)
         torch.testing.assert_close(batch["depth"].reshape(100, 100), views.depth[index])
 
@@ -79,3 +80,14 @@ def test_rays_of_drawn_pixels_equal_the_rays_of_their_whole_images(procedural_sc
     rays_o, rays_d = indexed_pixel_rays(views.K, views.c2w, views.height, views.width, index)
     torch.testing.assert_close(rays_o, every_o[index])
     torch.testing.assert_close(rays_d, every_d[index])
+
+
+def test_the_drawn_pixels_are_the_steps_seeded_draw(rays, procedural_scene):
+    from nerf_lightning.data import SceneDataModule
+    from nerf_lightning.data.batches import batch_seed
+
+    assert isinstance(rays, SceneDataModule)
+    pixels = len(procedural_scene.train) * 100 * 100
+    for step, drawn in zip(range(3), rays.train_dataloader()):
+        expected = torch.randint(0, pixels, (4096,), generator=torch.Generator().manual_seed(batch_seed(0, 0, step)))
+        assert torch.equal(drawn["pixel_index"], expected)

@@ -1,5 +1,6 @@
 """Camera refinement: zero corrections leave the rays alone; a correction turns a ray about its camera centre and
-moves it; the penalties are the corrections' weighted squared sizes; a checkpoint's corrections load at their size."""
+moves it; the penalties are the corrections' weighted squared sizes; a checkpoint's corrections load at their size;
+corrected cameras make the corrected rays."""
 
 import math
 
@@ -49,3 +50,39 @@ def test_corrections_load_at_their_saved_size_and_an_unknown_view_is_refused():
         fresh(torch.zeros(1, 3), torch.ones(1, 3), torch.tensor([5]))
     with pytest.raises(ValueError, match="lr > 0"):
         CameraRefinement(lr=0.0)
+
+
+def test_corrected_cameras_make_the_rays_that_forward_corrects():
+    from nerf_lightning.geometry.rays import image_rays
+
+    refinement = CameraRefinement()
+    refinement.resize(3)
+    with torch.no_grad():
+        refinement.rows.copy_(torch.randn(3, 6, generator=torch.Generator().manual_seed(0)) * 0.3)
+    rotations = torch.linalg.qr(torch.randn(2, 3, 3, generator=torch.Generator().manual_seed(1)))[0]
+    rotations = rotations * torch.linalg.det(rotations)[:, None, None]  # proper rotations
+    c2w = torch.eye(4).repeat(2, 1, 1)
+    c2w[:, :3, :3], c2w[:, :3, 3] = rotations, torch.tensor([[1.0, -2.0, 3.0], [0.5, 0.0, -1.0]])
+    K = torch.tensor([[20.0, 0.0, 8.0], [0.0, 22.0, 6.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
+    views = torch.tensor([2, 0])
+    corrected = refinement.corrected_c2w(c2w, views)
+    assert corrected.shape == (2, 4, 4) and torch.equal(corrected[:, 3], c2w[:, 3])
+    torch.testing.assert_close(corrected[:, :3, :3] @ corrected[:, :3, :3].transpose(1, 2), torch.eye(3).expand(2, 3, 3))
+    rays_o, rays_d = image_rays(K, c2w, 12, 16)  # (2, 192, 3)
+    want_o, want_d = refinement(rays_o.reshape(-1, 3), rays_d.reshape(-1, 3), views.repeat_interleave(192))
+    got_o, got_d = image_rays(K, corrected, 12, 16)
+    torch.testing.assert_close(got_o.reshape(-1, 3), want_o)
+    torch.testing.assert_close(got_d.reshape(-1, 3), want_d)
+    # nerfstudio's form: the same correction written in the camera's frame and multiplied on the right
+    from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+    w, t = refinement.rows[views, :3].detach(), refinement.rows[views, 3:].detach()
+    R = c2w[:, :3, :3]
+    right = torch.eye(4).repeat(2, 1, 1)
+    right[:, :3, :3] = axis_angle_to_rotation_matrix((R.transpose(1, 2) @ w[..., None])[..., 0])
+    right[:, :3, 3] = (R.transpose(1, 2) @ t[..., None])[..., 0]
+    torch.testing.assert_close(corrected.detach(), c2w @ right)
+    corrected[0, 0, 3].backward()  # the corrections learn through the cameras too
+    assert refinement.rows.grad[2, 3] == 1.0 and refinement.rows.grad[1].abs().sum() == 0
+    with pytest.raises(ValueError, match=r"c2w \(V, 4, 4\) and camera_indices \(V,\)"):
+        refinement.corrected_c2w(c2w[0], views)

@@ -16,6 +16,10 @@ times beyond the cameras' unit box) is kept as ``scene.aabb_scale`` and sets the
 
 Splits: nerfstudio's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` lists where the json has them,
 else every ``holdout_every``-th frame held out as val and test.
+
+Sparse points: nerfstudio's ``ply_file_path`` (relative to the json's folder; ``nerf-process-data`` writes
+``sparse_pc.ply``), a PLY of the capture's points in the json's coordinates, is read into ``scene.points``, mapped by
+``world_from_capture`` as the cameras are.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import torch
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image
+from nerf_lightning.data.points import read_ply_points
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 from nerf_lightning.geometry.paths import look_at_point
@@ -229,13 +234,21 @@ def load_transforms(
     K = torch.stack([lenses[image_path][0] for image_path in image_paths])
     views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images,
                   names=[image_path.name for image_path in image_paths])
+    points = None
+    if meta.get("ply_file_path") is not None:
+        if not isinstance(meta["ply_file_path"], str):
+            raise ValueError(f"{path}: 'ply_file_path' must be a file name, got {meta['ply_file_path']!r}")
+        try:
+            points = read_ply_points(path.parent / meta["ply_file_path"], world_from_capture)
+        except ValueError as error:
+            raise ValueError(f"{path}: 'ply_file_path': {error}") from None
     aabb_scale = float(meta["aabb_scale"]) if "aabb_scale" in meta else None
     if far is None:
         far = 2.0 * math.sqrt(3.0) * aabb_scale if aabb_scale else 4.0
     return Scene(
         splits={name: views.subset(split_rows) for name, split_rows in rows.items()}, near=near, far=far,
         background=torch.tensor(background, dtype=torch.float32), source=str(path),
-        world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale,
+        world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale, points=points,
     )
 
 

@@ -1,0 +1,140 @@
+"""The base of the datamodules that serve one :class:`Scene`: loading it, its scene space, validation on whole
+held-out views and render paths. Subclasses say only what a training step gets (random rays, whole views)."""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch.utils.data import DataLoader
+
+from nerf_lightning.data.batches import StepBatchesDataModule
+from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.geometry.paths import orbit_path, spiral_path
+from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.geometry.space import SceneSpace
+
+RENDER_PATHS = ("test", "orbit", "spiral")
+
+
+def view_batch(views: Views, index: int) -> dict[str, Any]:
+    """One whole view: its camera ``K`` (3, 3), ``c2w`` (4, 4) and every ray, row-major: rays_o, rays_d (H*W, 3),
+    rgb (H*W, 3) in [0, 1] and depth (H*W,) where known; ``height``, ``width`` and ``index`` (in ``views``)."""
+    K, c2w = views.K[index : index + 1], views.c2w[index : index + 1]
+    rays_o, rays_d = image_rays(K, c2w, views.height, views.width)
+    batch: dict[str, Any] = {"rays_o": rays_o[0], "rays_d": rays_d[0], "K": K[0], "c2w": c2w[0],
+                             "height": views.height, "width": views.width, "index": index}
+    if views.images is not None:
+        batch["rgb"] = as_float_rgb(views.images[index].reshape(-1, 3))
+    if views.depth is not None:
+        batch["depth"] = views.depth[index].reshape(-1)
+    return batch
+
+
+class SceneDataModule(StepBatchesDataModule):
+    """A :class:`Scene` served to a model: ``setup`` loads it (``scene``) and builds its
+    :class:`~nerf_lightning.geometry.space.SceneSpace` (``space``), which the model renders in; validation on a few
+    whole held-out views (:func:`view_batch` each); the cameras of a render path (:meth:`render_views`).
+    Subclasses implement :meth:`draw_batch` (and ``on_after_batch_transfer`` to finish a batch on the device).
+
+    Args:
+        scene: loads the :class:`Scene` (a Hydra ``_partial_`` of a loader such as ``load_blender``).
+        root: the scene's folder (Blender) or file (npz), handed to ``scene`` as its first argument; None for
+            scenes that need none (the procedural one).
+        batch_size: samples (rays, views) per training step.
+        val_views: how many held-out views to validate on (evenly spaced over the split).
+        val_split: ``val`` or ``test``: which held-out split validation uses (the other when it is absent).
+        render_path: ``test`` (the scene's render or test cameras), ``orbit`` or ``spiral``.
+        render_frames: frames of a generated orbit or spiral.
+        ndc: sample forward-facing scenes in normalised device coordinates (LLFF; cameras looking down -z).
+        contract: an unbounded scene: fields see all of space contracted into [-2, 2]^3 (real captures with
+            their background; the fields' and grids' ``aabb`` must be that cube).
+        val_steps, val_every, seed: see :class:`StepBatchesDataModule`.
+    """
+
+    def __init__(
+        self,
+        scene: Callable[..., Scene],
+        root: str | None = None,
+        batch_size: int = 1,
+        val_views: int = 3,
+        val_split: str = "val",
+        render_path: str = "test",
+        render_frames: int = 60,
+        ndc: bool = False,
+        contract: bool = False,
+        val_steps: list[int] | tuple[int, ...] = (),
+        val_every: int | None = 500,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(batch_size=batch_size, val_steps=val_steps, val_every=val_every, seed=seed)
+        if render_path not in RENDER_PATHS:
+            raise ValueError(f"data.render_path must be test, orbit or spiral, got '{render_path}'")
+        self.load_scene = scene
+        self.root = root
+        self.val_views = val_views
+        self.val_split = val_split
+        self.render_path = render_path
+        self.render_frames = render_frames
+        self.ndc, self.contract = ndc, contract
+        self.scene: Scene | None = None
+        self.space: SceneSpace | None = None
+        self._on_device: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.scene is not None:
+            return
+        arguments = () if self.root is None else (self.root,)
+        try:
+            inspect.signature(self.load_scene).bind(*arguments)
+        except TypeError:
+            loader = getattr(getattr(self.load_scene, "func", self.load_scene), "__name__", "the scene loader")
+            raise ValueError(f"data.root: {loader} " + ("needs a folder or file: set data.root" if self.root is None else "takes no data.root")) from None
+        except ValueError:  # a callable without a signature: let the call say what is wrong
+            pass
+        self.scene = self.load_scene(*arguments)
+        self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract)
+
+    def cameras_and_images(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The training cameras K (V, 3, 3), c2w (V, 4, 4) and uint8 images (V, H, W, 3) on ``device``, moved once;
+        the images None where they stay on the host (a GPU with less free memory than four times their size)."""
+        if device not in self._on_device:
+            train = self.scene.train
+            images: torch.Tensor | None = train.images
+            if device.type == "cuda":
+                free, _ = torch.cuda.mem_get_info(device)
+                images = train.images.to(device) if train.images.numel() < free / 4 else None
+            elif device.type != "cpu":
+                images = train.images.to(device) if train.images.numel() < 2 * 2**30 else None
+            self._on_device[device] = (train.K.to(device), train.c2w.to(device), images)
+        return self._on_device[device]
+
+    def validation_views(self) -> Views:
+        held_out = self.scene.held_out(self.val_split)
+        return held_out.subset(evenly_spaced(len(held_out), self.val_views))
+
+    def val_dataloader(self) -> DataLoader:
+        views = self.validation_views()
+        return DataLoader([view_batch(views, i) for i in range(len(views))], batch_size=None, num_workers=0)
+
+    def render_views(self, path: str | None = None, n_frames: int | None = None) -> Views:
+        """Cameras of a render path (no images): ``test`` (the scene's render split, else its test split),
+        ``orbit`` or ``spiral`` (the scene's own path of that name, as LLFF's spiral, else ``n_frames`` frames
+        around where the training cameras look)."""
+        path = path or self.render_path
+        n_frames = n_frames or self.render_frames
+        train = self.scene.train
+        if path == "test" or path in self.scene.splits:
+            if path == "test":
+                views = self.scene.splits.get("render") or self.scene.held_out("test")
+            else:
+                views = self.scene.splits[path]
+            return Views(K=views.K, c2w=views.c2w, height=views.height, width=views.width, names=views.names)
+        make = {"orbit": orbit_path, "spiral": spiral_path}.get(path)
+        if make is None:
+            raise ValueError(f"unknown render path '{path}': expected test, orbit or spiral")
+        c2w = make(train.c2w, n_frames)
+        return Views(K=train.K[:1].expand(n_frames, 3, 3).clone(), c2w=c2w, height=train.height, width=train.width)

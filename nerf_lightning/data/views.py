@@ -1,0 +1,99 @@
+"""Whole training views (or square patches of them), one a step, for models that render an image at a time."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.scene import Scene
+from nerf_lightning.data.scene_data import SceneDataModule
+
+
+def patch_camera(K: torch.Tensor, x0: torch.Tensor | int, y0: torch.Tensor | int) -> torch.Tensor:
+    """K (..., 3, 3) of a view -> K of its crop whose top-left pixel is column ``x0``, row ``y0``: the principal
+    point moves by (-x0, -y0), so the crop's pixel (u, v) sees what the view's (u + x0, v + y0) sees."""
+    K = K.clone()
+    K[..., 0, 2] -= x0
+    K[..., 1, 2] -= y0
+    return K
+
+
+class ViewDataModule(SceneDataModule):
+    """Each training step one training view drawn uniformly, whole or a random ``patch_size`` x ``patch_size``
+    patch of it; the scene, its space, validation and render paths as every
+    :class:`~nerf_lightning.data.scene_data.SceneDataModule` has them.
+
+    Training batch: ``image`` (h, w, 3) float in [0, 1], ``K`` (3, 3) (of the patch: its principal point shifted
+    by ``offset``), ``c2w`` (4, 4), ``camera_index`` () the training view, ``offset`` (2,) long, the column and row
+    of the patch's top-left pixel in the view ((0, 0) for a whole view), and ``height``, ``width`` (h, w: the
+    view's size, or ``patch_size``). The loader yields only ``camera_index`` and ``offset``, drawn with the step's
+    seeded generator (a resumed run draws the same); :meth:`on_after_batch_transfer` cuts the image and camera on
+    the model's device from the training images, uploaded there once where they fit (see
+    :meth:`~nerf_lightning.data.scene_data.SceneDataModule.cameras_and_images`), else cut on the host.
+    Validation batch: :func:`~nerf_lightning.data.scene_data.view_batch` of one held-out view.
+
+    Args:
+        patch_size: the side of a random square patch in pixels; None for the whole view.
+        scene, root, val_views, val_split, render_path, render_frames, ndc, contract, val_steps, val_every, seed:
+            see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
+    """
+
+    def __init__(
+        self,
+        scene: Callable[..., Scene],
+        root: str | None = None,
+        patch_size: int | None = None,
+        val_views: int = 3,
+        val_split: str = "val",
+        render_path: str = "test",
+        render_frames: int = 60,
+        ndc: bool = False,
+        contract: bool = False,
+        val_steps: list[int] | tuple[int, ...] = (),
+        val_every: int | None = 500,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(scene=scene, root=root, batch_size=1, val_views=val_views, val_split=val_split,
+                         render_path=render_path, render_frames=render_frames, ndc=ndc, contract=contract,
+                         val_steps=val_steps, val_every=val_every, seed=seed)
+        if patch_size is not None and patch_size < 1:
+            raise ValueError(f"data.patch_size must be >= 1 or null (whole views), got {patch_size}")
+        self.patch_size = patch_size
+
+    def setup(self, stage: str | None = None) -> None:
+        super().setup(stage)
+        train = self.scene.train
+        if self.patch_size is not None and self.patch_size > min(train.height, train.width):
+            raise ValueError(f"data.patch_size={self.patch_size} does not fit the {train.width}x{train.height} training views "
+                             f"of {self.scene.source or 'the scene'}: at most {min(train.height, train.width)}, or null for whole views")
+
+    def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        """``camera_index`` () a training view drawn uniformly and ``offset`` (2,) the column and row of a
+        uniformly drawn patch's top-left pixel ((0, 0) for whole views)."""
+        train = self.scene.train
+        camera_index = torch.randint(0, len(train), (), generator=generator)
+        if self.patch_size is None:
+            return {"camera_index": camera_index, "offset": torch.zeros(2, dtype=torch.long)}
+        x0 = torch.randint(0, train.width - self.patch_size + 1, (), generator=generator)
+        y0 = torch.randint(0, train.height - self.patch_size + 1, (), generator=generator)
+        return {"camera_index": camera_index, "offset": torch.stack([x0, y0])}
+
+    def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
+        """A training batch's image (or patch) and camera, made on the device its ``camera_index`` was moved to."""
+        if "offset" not in batch:
+            return batch  # a validation view, rays and all
+        index, offset = batch["camera_index"], batch["offset"]
+        device = index.device
+        K, c2w, images = self.cameras_and_images(device)
+        train = self.scene.train
+        height, width = (train.height, train.width) if self.patch_size is None else (self.patch_size, self.patch_size)
+        view, x0, y0 = int(index), int(offset[0]), int(offset[1])
+        if images is None:  # too large for the device: cut on the host, move the patch alone
+            image = train.images[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
+        else:
+            image = images[view, y0 : y0 + height, x0 : x0 + width]
+        return {"image": as_float_rgb(image), "K": patch_camera(K[view], x0, y0), "c2w": c2w[view], "camera_index": index,
+                "offset": offset, "height": height, "width": width}

@@ -1,0 +1,102 @@
+"""ViewDataModule: whole training views or patches of them, one a step, drawn by the step's seed; the validation
+views every SceneDataModule serves carry their cameras."""
+
+import pytest
+import torch
+
+from nerf_lightning.data import ViewDataModule
+from nerf_lightning.data.batches import batch_seed
+from nerf_lightning.geometry.rays import image_rays
+
+
+def views_of(scene, **options):
+    data = ViewDataModule(scene=lambda: scene, val_views=2, seed=3, **options)
+    data.setup()
+    return data
+
+
+def test_a_step_gets_one_whole_training_view_with_its_camera(procedural_scene):
+    data = views_of(procedural_scene)
+    drawn = next(iter(data.train_dataloader()))
+    assert set(drawn) == {"camera_index", "offset"} and drawn["camera_index"].shape == () and drawn["offset"].tolist() == [0, 0]
+    batch = data.on_after_batch_transfer(drawn, 0)  # what Lightning calls on the model's device
+    train, view = procedural_scene.train, int(drawn["camera_index"])
+    assert batch["image"].shape == (100, 100, 3) and batch["image"].dtype == torch.float32
+    assert (batch["height"], batch["width"]) == (100, 100) and batch["K"].shape == (3, 3) and batch["c2w"].shape == (4, 4)
+    torch.testing.assert_close(batch["image"], train.images[view].float() / 255)
+    assert torch.equal(batch["K"], train.K[view]) and torch.equal(batch["c2w"], train.c2w[view])
+
+
+def test_a_patch_is_cut_with_its_camera_whose_rays_are_the_views_rays_at_those_pixels(procedural_scene):
+    data = views_of(procedural_scene, patch_size=24)
+    train = procedural_scene.train
+    iterator = iter(data.train_dataloader())
+    offsets = set()
+    for _ in range(5):
+        batch = data.on_after_batch_transfer(next(iterator), 0)
+        view, (x0, y0) = int(batch["camera_index"]), batch["offset"].tolist()
+        offsets.add((x0, y0))
+        assert batch["image"].shape == (24, 24, 3) and (batch["height"], batch["width"]) == (24, 24)
+        assert 0 <= x0 <= 100 - 24 and 0 <= y0 <= 100 - 24
+        torch.testing.assert_close(batch["image"], train.images[view, y0 : y0 + 24, x0 : x0 + 24].float() / 255)
+        torch.testing.assert_close(batch["K"][:2, 2], train.K[view, :2, 2] - torch.tensor([x0, y0]).float())
+        patch_o, patch_d = image_rays(batch["K"][None], batch["c2w"][None], 24, 24)
+        view_o, view_d = image_rays(train.K[view : view + 1], train.c2w[view : view + 1], 100, 100)
+        torch.testing.assert_close(patch_o.reshape(24, 24, 3), view_o.reshape(100, 100, 3)[y0 : y0 + 24, x0 : x0 + 24])
+        torch.testing.assert_close(patch_d.reshape(24, 24, 3), view_d.reshape(100, 100, 3)[y0 : y0 + 24, x0 : x0 + 24])
+    assert len(offsets) > 1
+
+
+def test_draws_are_the_steps_own_so_a_resumed_run_draws_the_same(procedural_scene):
+    data, again = views_of(procedural_scene, patch_size=16), views_of(procedural_scene, patch_size=16)
+    first = list(iter(data.train_dataloader()))[:40]
+    second = list(iter(again.train_dataloader()))[:40]
+    assert all(torch.equal(a[key], b[key]) for a, b in zip(first, second) for key in a)
+    assert len({int(b["camera_index"]) for b in second}) > 10  # views differ from step to step
+    # the batch of step s is the one its seed draws, whatever step the stream started at
+    generator = torch.Generator()
+    for step in (0, 7, 39):
+        generator.manual_seed(batch_seed(3, 0, step))
+        drawn = data.draw_batch(generator)
+        assert all(torch.equal(drawn[key], second[step][key]) for key in drawn)
+
+
+def test_a_patch_larger_than_the_views_and_a_missing_root_are_refused(procedural_scene):
+    with pytest.raises(ValueError, match=r"data.patch_size=101 does not fit the 100x100 training views"):
+        views_of(procedural_scene, patch_size=101)
+    with pytest.raises(ValueError, match="data.patch_size must be >= 1"):
+        ViewDataModule(scene=lambda: procedural_scene, patch_size=0)
+
+    def load_files(root):
+        return procedural_scene
+
+    with pytest.raises(ValueError, match="data.root: load_files needs a folder or file: set data.root"):
+        ViewDataModule(scene=load_files).setup()
+
+
+def test_validation_views_carry_their_cameras(procedural_scene):
+    data = views_of(procedural_scene)
+    views = data.validation_views()
+    for index, batch in enumerate(data.val_dataloader()):
+        assert batch["K"].shape == (3, 3) and batch["c2w"].shape == (4, 4)
+        assert torch.equal(batch["K"], views.K[index]) and torch.equal(batch["c2w"], views.c2w[index])
+        rays_o, rays_d = image_rays(batch["K"][None], batch["c2w"][None], batch["height"], batch["width"])
+        torch.testing.assert_close(rays_o[0], batch["rays_o"])
+        torch.testing.assert_close(rays_d[0], batch["rays_d"])
+        assert data.on_after_batch_transfer(batch, 0) is batch
+
+
+def test_data_views_config_serves_any_format(tmp_path, procedural_scene):
+    from hydra.utils import instantiate
+
+    from nerf_lightning.config import compose_config
+    from nerf_lightning.data.formats import save_npz
+
+    path = save_npz(procedural_scene, tmp_path / "course.npz")
+    cfg = compose_config(["data=views", "data/scene=npz", f"data.root={path}", "data.patch_size=32", "paths.output_dir=/tmp/unused"])
+    assert cfg.data.seed == cfg.seed and cfg.data.scene._target_.endswith("load_npz")
+    data = instantiate(cfg.data)
+    assert isinstance(data, ViewDataModule) and data.patch_size == 32
+    data.setup()
+    assert data.on_after_batch_transfer(next(iter(data.train_dataloader())), 0)["image"].shape == (32, 32, 3)
+    assert data.space is not None and len(data.render_views()) == len(procedural_scene.splits["test"])

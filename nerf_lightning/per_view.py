@@ -12,12 +12,16 @@ class PerViewTable(nn.Module):
     """A learnt (V, width) table ``rows``, one row a training view.
 
     V is known once the data is loaded: :meth:`resize` sets it (the radiance-field module does, in ``setup``, before
-    the optimiser is built), and a checkpoint's table loads at the size it was saved with.
+    the optimiser is built), and a checkpoint's table loads at the size it was saved with (``rows`` is a variable-size
+    parameter, :mod:`~nerf_lightning.models.parameters`: a model sizes it in ``on_load_checkpoint``, and a table
+    loaded on its own does here).
 
     Args:
         width: numbers a row.
         init: ``zeros`` or ``normal`` (N(0, 1), as ``nn.Embedding``): how :meth:`resize` fills new rows.
     """
+
+    variable_size_parameters = ("rows",)
 
     def __init__(self, width: int, init: str = "zeros") -> None:
         super().__init__()
@@ -41,7 +45,7 @@ class PerViewTable(nn.Module):
                              f"{type(self).__name__}" + ("" if self.rows.shape[0] else ": resize(n_training_views) first"))
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
-        saved = state_dict.get(prefix + "rows")
-        if saved is not None and saved.shape != self.rows.shape:
-            self.rows = nn.Parameter(torch.zeros_like(saved, device=self.rows.device))
+        from nerf_lightning.models.parameters import resize_to_saved  # (here: nerf_lightning.models imports this module)
+
+        resize_to_saved(self, state_dict, prefix)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

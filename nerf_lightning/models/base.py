@@ -1,5 +1,6 @@
-"""What every model here shares: an optimiser and an optional per-step scheduler, both built from Hydra partials; a
-stop on a non-finite loss; the random state in checkpoints, so a resumed run draws what the uninterrupted one would."""
+"""What every model here shares: an optimiser over named parameter groups and an optional per-step scheduler, both
+built from Hydra partials; parameters replaced or resized with their optimiser state; a stop on a non-finite loss;
+the random state in checkpoints, so a resumed run draws what the uninterrupted one would."""
 
 from __future__ import annotations
 
@@ -8,12 +9,19 @@ from typing import Any
 
 import lightning as L
 import torch
+from torch import nn
 
 from nerf_lightning.errors import NonFiniteLossError
+from nerf_lightning.models.parameters import GroupSchedules, check_groups, replace_parameter, resize_to_saved
 
 
 class FieldModule(L.LightningModule):
     """A LightningModule that builds its optimiser and learning-rate scheduler from factories.
+
+    The optimiser trains the groups of :meth:`parameter_groups`, each at its own learning rate and schedule if it
+    has them (:mod:`~nerf_lightning.models.parameters`). :meth:`replace_parameter` swaps a parameter for one of
+    another size, its optimiser state carried row by row; the parameters a model names in
+    ``variable_size_parameters`` load from a checkpoint at the size they were saved with.
 
     A NaN or infinite training loss stops the run with :class:`~nerf_lightning.errors.NonFiniteLossError` before
     it reaches the weights (checked every step on a CPU, where it costs nothing; on a GPU every
@@ -22,8 +30,9 @@ class FieldModule(L.LightningModule):
     (CPU and CUDA), restored on resuming, so that stratified jitter continues as in an uninterrupted run.
 
     Args:
-        optimizer: builds the optimiser from the parameters (a Hydra ``_partial_``).
-        scheduler: builds a scheduler stepped every optimiser step from the optimiser; or None.
+        optimizer: builds the optimiser from the parameter groups (a Hydra ``_partial_``).
+        scheduler: builds a scheduler stepped every optimiser step from the optimiser, for the groups without a
+            schedule of their own; or None.
     """
 
     kind = "field"
@@ -33,15 +42,33 @@ class FieldModule(L.LightningModule):
         self.make_optimizer = optimizer
         self.make_scheduler = scheduler
 
-    def parameter_groups(self) -> Any:
-        """What the optimiser trains: every parameter, or a list of groups (dicts with their own options)."""
-        return self.parameters()
+    def parameter_groups(self) -> list[dict[str, Any]]:
+        """What the optimiser trains: named groups, ``{"name": str, "params": [...], "lr": float (optional: else the
+        optimiser's), "schedule": step -> factor of that lr (optional: else the configured scheduler's)}`` and any
+        other option of torch's groups; every trainable parameter in one group
+        (:func:`~nerf_lightning.models.parameters.check_groups`). Here: one group, ``model``, of every parameter."""
+        return [{"name": "model", "params": list(self.parameters())}]
 
     def configure_optimizers(self) -> Any:
-        optimizer = self.make_optimizer(params=self.parameter_groups())
-        if self.make_scheduler is None:
+        groups = check_groups(self.parameter_groups(), self)
+        options = [{key: value for key, value in group.items() if key != "schedule"} for group in groups]
+        if len(options) == 1:  # LearningRateMonitor then logs lr-Adam, as before groups had names, not lr-Adam/model
+            del options[0]["name"]
+        optimizer = self.make_optimizer(params=options)
+        scheduler = None if self.make_scheduler is None else self.make_scheduler(optimizer=optimizer)
+        schedules = [group.get("schedule") for group in groups]
+        if any(schedule is not None for schedule in schedules):
+            scheduler = GroupSchedules(optimizer, schedules, fallback=scheduler)
+        if scheduler is None:
             return optimizer
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": self.make_scheduler(optimizer=optimizer), "interval": "step"}}
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def replace_parameter(self, owner: nn.Module, name: str, value: torch.Tensor, rows_from: torch.Tensor | None = None) -> nn.Parameter:
+        """Set ``owner.<name>`` to a new parameter holding ``value`` (any size), in the old one's place in the
+        optimiser if it is built, its state (Adam's moments) taken row by row as ``rows_from`` (N_new,) says: the old
+        row for each new row, or -1 for zeros. See :func:`~nerf_lightning.models.parameters.replace_parameter`."""
+        optimizers = self._trainer.optimizers if self._trainer is not None else []
+        return replace_parameter(owner, name, value, optimizers, rows_from)
 
     def on_before_backward(self, loss: torch.Tensor) -> None:
         if self.device.type != "cpu" and self.global_step % max(self.trainer.log_every_n_steps, 1) != 0:
@@ -57,6 +84,9 @@ class FieldModule(L.LightningModule):
         checkpoint["rng_state"] = {"torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Size the variable-size parameters as saved (Lightning calls this before ``load_state_dict`` and before
+        it builds the optimiser; so does :func:`~nerf_lightning.checkpoints.load_model`), and restore the random state."""
+        resize_to_saved(self, checkpoint.get("state_dict", {}), replace=self.replace_parameter)
         state = checkpoint.get("rng_state")
         if state:
             torch.set_rng_state(state["torch"])

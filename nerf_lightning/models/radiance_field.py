@@ -92,13 +92,14 @@ class RadianceFieldModule(FieldModule):
             if per_view is not None and scene is not None:
                 per_view.resize(len(scene.train))
 
-    def parameter_groups(self) -> Any:
-        """The camera corrections, if any, in their own group at their own learning rate; the rest at the optimiser's."""
+    def parameter_groups(self) -> list[dict[str, Any]]:
+        """``field`` (the field and what the sampler learns) at the optimiser's learning rate, and the camera
+        corrections, if any, in ``camera_refinement`` at their own."""
         if self.camera_refinement is None:
-            return self.parameters()
+            return [{"name": "field", "params": list(self.parameters())}]
         refinement = {id(p) for p in self.camera_refinement.parameters()}
-        return [{"params": [p for p in self.parameters() if id(p) not in refinement]},
-                {"params": list(self.camera_refinement.parameters()), "lr": self.camera_refinement.lr}]
+        return [{"name": "field", "params": [p for p in self.parameters() if id(p) not in refinement]},
+                {"name": "camera_refinement", "params": list(self.camera_refinement.parameters()), "lr": self.camera_refinement.lr}]
 
     def on_fit_start(self) -> None:
         space = getattr(getattr(self.trainer, "datamodule", None), "space", None)

@@ -76,10 +76,13 @@ class ViewDataModule(SceneDataModule):
         train = self.scene.train
         camera_index = torch.randint(0, len(train), (), generator=generator)
         if self.patch_size is None:
-            return {"camera_index": camera_index, "offset": torch.zeros(2, dtype=torch.long)}
-        x0 = torch.randint(0, train.width - self.patch_size + 1, (), generator=generator)
-        y0 = torch.randint(0, train.height - self.patch_size + 1, (), generator=generator)
-        return {"camera_index": camera_index, "offset": torch.stack([x0, y0])}
+            x0 = y0 = torch.zeros((), dtype=torch.long)
+        else:
+            x0 = torch.randint(0, train.width - self.patch_size + 1, (), generator=generator)
+            y0 = torch.randint(0, train.height - self.patch_size + 1, (), generator=generator)
+        # the same numbers as Python ints, which stay on the host: cutting the image on a GPU then never waits on it
+        crop = (int(camera_index), int(x0), int(y0))
+        return {"camera_index": camera_index, "offset": torch.stack([x0, y0]), "crop": crop}
 
     def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
         """A training batch's image (or patch) and camera, made on the device its ``camera_index`` was moved to."""
@@ -90,7 +93,7 @@ class ViewDataModule(SceneDataModule):
         K, c2w, images = self.cameras_and_images(device)
         train = self.scene.train
         height, width = (train.height, train.width) if self.patch_size is None else (self.patch_size, self.patch_size)
-        view, x0, y0 = int(index), int(offset[0]), int(offset[1])
+        view, x0, y0 = batch["crop"]
         if images is None:  # too large for the device: cut on the host, move the patch alone
             image = train.images[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
         else:

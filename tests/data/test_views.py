@@ -18,7 +18,7 @@ def views_of(scene, **options):
 def test_a_step_gets_one_whole_training_view_with_its_camera(procedural_scene):
     data = views_of(procedural_scene)
     drawn = next(iter(data.train_dataloader()))
-    assert set(drawn) == {"camera_index", "offset"} and drawn["camera_index"].shape == () and drawn["offset"].tolist() == [0, 0]
+    assert set(drawn) == {"camera_index", "offset", "crop"} and drawn["camera_index"].shape == () and drawn["offset"].tolist() == [0, 0]
     batch = data.on_after_batch_transfer(drawn, 0)  # what Lightning calls on the model's device
     train, view = procedural_scene.train, int(drawn["camera_index"])
     assert batch["image"].shape == (100, 100, 3) and batch["image"].dtype == torch.float32

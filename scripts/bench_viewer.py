@@ -1,4 +1,4 @@
-"""Frame times of the viewer (nerf-view, viewer=true) at each progressive resolution, on a trained lego; JSON out.
+"""Frame times of the viewer (nerf-view, viewer=live) at each progressive resolution, on a trained lego; JSON out.
 
     .venv/bin/python scripts/bench_viewer.py --root ../shared/data/nerf_synthetic/lego --minutes 5 \\
         --out docs/bench/viewer_lego_cpu.json

@@ -36,6 +36,8 @@ class RayDataModule(SceneDataModule):
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
+    batches = "rays"  # what a training batch is, for a model to check it can train on it
+
     def __init__(
         self,
         scene: Callable[..., Scene],

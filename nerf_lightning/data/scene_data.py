@@ -14,19 +14,15 @@ from nerf_lightning.data.batches import StepBatchesDataModule
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
-from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.space import SceneSpace
 
 RENDER_PATHS = ("test", "orbit", "spiral")
 
 
 def view_batch(views: Views, index: int) -> dict[str, Any]:
-    """One whole view: its camera ``K`` (3, 3), ``c2w`` (4, 4) and every ray, row-major: rays_o, rays_d (H*W, 3),
-    rgb (H*W, 3) in [0, 1] and depth (H*W,) where known; ``height``, ``width`` and ``index`` (in ``views``)."""
-    K, c2w = views.K[index : index + 1], views.c2w[index : index + 1]
-    rays_o, rays_d = image_rays(K, c2w, views.height, views.width)
-    batch: dict[str, Any] = {"rays_o": rays_o[0], "rays_d": rays_d[0], "K": K[0], "c2w": c2w[0],
-                             "height": views.height, "width": views.width, "index": index}
+    """One whole view: its camera ``K`` (3, 3), ``c2w`` (4, 4) (a model renders it with ``render_view``), rgb
+    (H*W, 3) in [0, 1] and depth (H*W,) where known, row-major; ``height``, ``width`` and ``index`` (in ``views``)."""
+    batch: dict[str, Any] = {"K": views.K[index], "c2w": views.c2w[index], "height": views.height, "width": views.width, "index": index}
     if views.images is not None:
         batch["rgb"] = as_float_rgb(views.images[index].reshape(-1, 3))
     if views.depth is not None:

@@ -41,6 +41,8 @@ class ViewDataModule(SceneDataModule):
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
+    batches = "views"  # what a training batch is, for a model to check it can train on it
+
     def __init__(
         self,
         scene: Callable[..., Scene],

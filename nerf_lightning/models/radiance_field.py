@@ -87,7 +87,11 @@ class RadianceFieldModule(FieldModule):
     def setup(self, stage: str) -> None:
         """Size what is learnt a training view (the field's appearance embedding, the camera corrections) to the
         training views (before the optimiser is built and a checkpoint is restored)."""
-        scene = getattr(getattr(getattr(self, "trainer", None), "datamodule", None), "scene", None)
+        datamodule = getattr(getattr(self, "trainer", None), "datamodule", None)
+        if stage == "fit" and getattr(datamodule, "batches", "rays") != "rays":
+            raise ValueError(f"a radiance field trains on random rays, and data={getattr(datamodule, 'batches', '?')} serves whole "
+                             "training views: use data=<format> (blender, llff, transforms, ...), which serves rays")
+        scene = getattr(datamodule, "scene", None)
         for per_view in (getattr(self.field, "appearance", None), self.camera_refinement):
             if per_view is not None and scene is not None:
                 per_view.resize(len(scene.train))

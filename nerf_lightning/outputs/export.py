@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from nerf_lightning.models.contract import HasDensity
+from nerf_lightning.outputs.mesh import FORMATS as MESH_FORMATS
 from nerf_lightning.outputs.mesh import mesh_model, write_mesh
 
 log = logging.getLogger(__name__)
@@ -43,7 +44,7 @@ def _mesh_writer(file_type: str) -> Callable[[Any, Mapping[str, Any], Path], Pat
 
 
 EXPORT_FORMATS: dict[str, ExportFormat] = {
-    file_type: ExportFormat(HasDensity, "a density to mesh (marching cubes)", _mesh_writer(file_type)) for file_type in ("ply", "obj", "glb")
+    file_type: ExportFormat(HasDensity, "a density to mesh (marching cubes)", _mesh_writer(file_type)) for file_type in MESH_FORMATS
 }
 
 

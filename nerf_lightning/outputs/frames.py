@@ -38,12 +38,12 @@ def depth_picture(space: SceneSpace, depth: torch.Tensor, accumulation: torch.Te
     """Depth as the scene space pictures it (near bright, :meth:`SceneSpace.depth_picture
     <nerf_lightning.geometry.space.SceneSpace.depth_picture>`), faded out where nothing is hit: (H, W) grey, or
     (H, W, 3) through a matplotlib colormap such as ``turbo``."""
-    grey = space.depth_picture(depth, accumulation)
     if colormap == "grey":
-        return grey
+        return space.depth_picture(depth, accumulation)
     if colormap not in matplotlib.colormaps:
         raise ValueError(f"render.depth_colormap must be grey or a matplotlib colormap (turbo, viridis, ...), got '{colormap}'")
-    coloured = torch.from_numpy(matplotlib.colormaps[colormap](grey.numpy())[..., :3]).float()
+    # the colour of the depth itself, then faded: a half-transparent pixel keeps its depth's hue
+    coloured = torch.from_numpy(matplotlib.colormaps[colormap](space.depth_picture(depth).numpy())[..., :3]).float()
     return coloured * accumulation[..., None]
 
 

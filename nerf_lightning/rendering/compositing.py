@@ -63,7 +63,7 @@ def weights_from_alpha(alpha: torch.Tensor, transmittance_before: torch.Tensor |
     ``transmittance_before`` (...,): what each row arrives with from an earlier round; None for 1.
     """
     _check_rows(alpha, transmittance_before)
-    return _rows(-torch.log1p(-alpha), alpha, transmittance_before)
+    return _rows(_optical_depth_of(alpha), alpha, transmittance_before)
 
 
 def weights_from_optical_depth_packed(
@@ -86,7 +86,7 @@ def weights_from_alpha_packed(
     ``ray_indices`` (M,) non-decreasing; ``transmittance_before`` (N,), None for 1.
     """
     _check_packed(alpha, ray_indices, n_rays, transmittance_before)
-    return _packed(-torch.log1p(-alpha), alpha, ray_indices, n_rays, transmittance_before)
+    return _packed(_optical_depth_of(alpha), alpha, ray_indices, n_rays, transmittance_before)
 
 
 def exclusive_sum_packed(values: torch.Tensor, ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
@@ -97,6 +97,12 @@ def exclusive_sum_packed(values: torch.Tensor, ray_indices: torch.Tensor, n_rays
     running sum over the whole batch, less each ray's start, loses the small terms of later rays to the large total).
     """
     return _exclusive_and_total_packed(values, ray_indices, n_rays)[0]
+
+
+def _optical_depth_of(alpha: torch.Tensor) -> torch.Tensor:
+    """-log(1 - alpha); an alpha of 1 (or rounding to it) is taken as 1 - 1e-6 here, so that the transmittance after
+    it is tiny instead of NaN (checking would make a GPU wait on the host)."""
+    return -torch.log1p(-alpha.clamp(max=1.0 - 1e-6))
 
 
 def _rows(optical_depth: torch.Tensor, alpha: torch.Tensor, transmittance_before: torch.Tensor | None) -> Compositing:

@@ -16,12 +16,13 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from nerf_lightning.data.scene_data import RENDER_PATHS
 from nerf_lightning.data.scene import Views
 from nerf_lightning.models.contract import Overlay, ShowsOverlays
 from nerf_lightning.viz.viser_view import add_training_cameras, scene_frame
 
 OUTPUTS = ("rgb", "depth", "accumulation")
-PATHS = ("orbit", "spiral", "test")
+PATHS = RENDER_PATHS
 PATH_COLOUR = (230, 140, 20)
 
 

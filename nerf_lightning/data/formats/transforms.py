@@ -238,10 +238,14 @@ def load_transforms(
     if meta.get("ply_file_path") is not None:
         if not isinstance(meta["ply_file_path"], str):
             raise ValueError(f"{path}: 'ply_file_path' must be a file name, got {meta['ply_file_path']!r}")
-        try:
-            points = read_ply_points(path.parent / meta["ply_file_path"], world_from_capture)
-        except ValueError as error:
-            raise ValueError(f"{path}: 'ply_file_path': {error}") from None
+        ply = path.parent / meta["ply_file_path"]
+        if ply.is_file():
+            try:
+                points = read_ply_points(ply, world_from_capture)
+            except ValueError as error:
+                raise ValueError(f"{path}: 'ply_file_path': {error}") from None
+        else:  # the views load without their sparse points: only a model that starts from them needs them
+            log.warning("%s: 'ply_file_path' names %s, which is not there: the scene has no sparse points", path, ply)
     aabb_scale = float(meta["aabb_scale"]) if "aabb_scale" in meta else None
     if far is None:
         far = 2.0 * math.sqrt(3.0) * aabb_scale if aabb_scale else 4.0

@@ -38,24 +38,8 @@ class RayDataModule(SceneDataModule):
 
     batches = "rays"  # what a training batch is, for a model to check it can train on it
 
-    def __init__(
-        self,
-        scene: Callable[..., Scene],
-        root: str | None = None,
-        batch_size: int = 10_000,
-        val_views: int = 3,
-        val_split: str = "val",
-        render_path: str = "test",
-        render_frames: int = 60,
-        ndc: bool = False,
-        contract: bool = False,
-        val_steps: list[int] | tuple[int, ...] = (),
-        val_every: int | None = 500,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(scene=scene, root=root, batch_size=batch_size, val_views=val_views, val_split=val_split,
-                         render_path=render_path, render_frames=render_frames, ndc=ndc, contract=contract,
-                         val_steps=val_steps, val_every=val_every, seed=seed)
+    def __init__(self, scene: Callable[..., Scene], root: str | None = None, batch_size: int = 10_000, **options: Any) -> None:
+        super().__init__(scene, root, batch_size, **options)
 
     def setup(self, stage: str | None = None) -> None:
         super().setup(stage)
@@ -68,7 +52,7 @@ class RayDataModule(SceneDataModule):
     def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
         """A training batch's rays and colours, made on the device its ``pixel_index`` was moved to."""
         if "pixel_index" not in batch:
-            return batch  # a validation view, rays and all
+            return batch  # a validation view: its camera, which the model renders
         index = batch["pixel_index"]
         K, c2w, images = self.cameras_and_images(index.device)
         rays_o, rays_d = indexed_pixel_rays(K, c2w, self.scene.train.height, self.scene.train.width, index)

@@ -43,24 +43,8 @@ class ViewDataModule(SceneDataModule):
 
     batches = "views"  # what a training batch is, for a model to check it can train on it
 
-    def __init__(
-        self,
-        scene: Callable[..., Scene],
-        root: str | None = None,
-        patch_size: int | None = None,
-        val_views: int = 3,
-        val_split: str = "val",
-        render_path: str = "test",
-        render_frames: int = 60,
-        ndc: bool = False,
-        contract: bool = False,
-        val_steps: list[int] | tuple[int, ...] = (),
-        val_every: int | None = 500,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(scene=scene, root=root, batch_size=1, val_views=val_views, val_split=val_split,
-                         render_path=render_path, render_frames=render_frames, ndc=ndc, contract=contract,
-                         val_steps=val_steps, val_every=val_every, seed=seed)
+    def __init__(self, scene: Callable[..., Scene], root: str | None = None, patch_size: int | None = None, **options: Any) -> None:
+        super().__init__(scene, root, batch_size=1, **options)
         if patch_size is not None and patch_size < 1:
             raise ValueError(f"data.patch_size must be >= 1 or null (whole views), got {patch_size}")
         self.patch_size = patch_size
@@ -89,7 +73,7 @@ class ViewDataModule(SceneDataModule):
     def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
         """A training batch's image (or patch) and camera, made on the device its ``camera_index`` was moved to."""
         if "offset" not in batch:
-            return batch  # a validation view, rays and all
+            return batch  # a validation view: its camera, which the model renders
         index, offset = batch["camera_index"], batch["offset"]
         device = index.device
         K, c2w, images = self.cameras_and_images(device)

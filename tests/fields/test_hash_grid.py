@@ -1,16 +1,12 @@
 """The hash-grid encoding against a plain-loop reference, the spherical harmonics, and the hash-grid field."""
 
 import math
-import shutil
-import warnings
 
 import pytest
 import torch
 
-from nerf_lightning.compiling import CompiledOrEager
 from nerf_lightning.fields import GridField, HashGridEncoding, SphericalHarmonicsEncoding, TensorVMEncoding
-from nerf_lightning.fields import hash_grid
-from nerf_lightning.fields.hash_grid import gather_rows, interpolate_corners, level_resolutions
+from nerf_lightning.fields.hash_grid import encode_reference, level_resolutions
 
 
 def hash_grid_field(aabb, **encoding) -> GridField:
@@ -69,8 +65,12 @@ def test_hash_encoding_equals_the_plain_loop_reference():
     points[0] = torch.tensor([1.0, 1.0, 1.0])  # the far corner: the last cell, not one past it
     points[1] = torch.tensor([0.0, 0.5, 1.0])
     encoding = encoding.double()
-    got = encoding(points)
     expected = torch.tensor([reference_encoding(encoding, p.tolist()) for p in points], dtype=torch.float64)
+    # encode_reference, forward_reference (which calls it) and forward (with gradients here: a fast path)
+    reference = encode_reference(points, *encoding.reference_inputs())
+    torch.testing.assert_close(reference, expected, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(encoding.forward_reference(points.reshape(4, 10, 3)), expected.reshape(4, 10, 8), rtol=1e-9, atol=1e-9)
+    got = encoding(points)
     assert got.shape == (40, 8)
     torch.testing.assert_close(got, expected, rtol=1e-9, atol=1e-9)
 
@@ -124,7 +124,7 @@ def test_hash_encoding_gradients_with_respect_to_points_are_the_numerical_ones()
 
 def test_hash_encoding_sums_corners_alike_with_and_without_gradients():
     """In float32 on a CPU, training sums the corners of rows of two as complex numbers, evaluation as real rows
-    (``compile_evaluation=False``) or corner by corner (:func:`interpolate_corners`, compiled where it can be): the
+    (``compile_evaluation=False``) or corner by corner (:func:`encode_reference`, compiled where it can be): the
     same features to float32 rounding."""
     encoding = small_encoding()
     points = torch.rand(300, 3, generator=torch.Generator().manual_seed(5))
@@ -138,111 +138,18 @@ def test_hash_encoding_sums_corners_alike_with_and_without_gradients():
         assert torch.allclose(trained, evaluated, atol=1e-6, rtol=1e-5), compiled
 
 
-def has_cxx_compiler() -> bool:
-    return any(shutil.which(name) for name in ("g++", "clang++", "c++"))
-
-
-def test_corner_by_corner_interpolation_equals_the_plain_loop_reference():
-    """:func:`interpolate_corners` as written (eagerly) and through torch.compile, with the encoding's state: the
-    paper's features, dense and hashed levels, the far corner included. Where this machine has a C++ compiler, the
-    evaluation really ran compiled."""
-    encoding = small_encoding().double().eval()
-    points = torch.rand(40, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
-    points[0] = torch.tensor([1.0, 1.0, 1.0])
-    expected = torch.tensor([reference_encoding(encoding, p.tolist()) for p in points], dtype=torch.float64)
-    state = (encoding.table.detach(), encoding.resolutions, encoding.hashed, encoding.offsets, encoding.hash_primes, encoding.hash_mask)
-    torch.testing.assert_close(interpolate_corners(points, *state), expected, rtol=1e-9, atol=1e-9)
-    with torch.no_grad():
-        torch.testing.assert_close(encoding(points.reshape(4, 10, 3)), expected.reshape(4, 10, 8), rtol=1e-9, atol=1e-9)
-    if has_cxx_compiler():
-        assert hash_grid._compiled_interpolation.failure is None and hash_grid._compiled_interpolation.compiled is not None
-
-
-def test_only_passes_without_gradients_on_the_cpu_go_through_the_compiled_interpolation(monkeypatch):
-    """Gradients, ``compile_evaluation=False`` and sizes 0 and 1 take the batched forward; a pass without gradients
-    (evaluation, or a proposal network's pass on a step it does not learn) takes :func:`interpolate_corners` (here a
-    spy running it eagerly), the same features."""
-    calls = []
-
-    def spy(*args):
-        calls.append(args[0].shape[0])
-        return interpolate_corners(*args)
-
-    monkeypatch.setattr(hash_grid, "_compiled_interpolation", spy)
-    encoding = small_encoding()
-    points = torch.rand(50, 3, generator=torch.Generator().manual_seed(3))
-    batched = encoding(points).detach()  # gradients on
-    encoding.eval()
-    encoding(points)
-    encoding.compile_evaluation = False
-    with torch.no_grad():
-        encoding(points)
-    assert calls == []
-    encoding.compile_evaluation = True
-    with torch.no_grad():
-        torch.testing.assert_close(encoding(points.reshape(5, 10, 3)), batched.reshape(5, 10, 8), atol=1e-6, rtol=1e-5)
-        assert encoding(points[:1]).shape == (1, 8) and encoding(torch.zeros(0, 3)).shape == (0, 8)
-        encoding.train()
-        encoding(points[:20])
-    assert calls == [50, 20]
-
-
-def test_a_failing_compiler_leaves_plain_pytorch_with_one_warning(monkeypatch):
-    """No C++ compiler (torch.compile raising at the first call): one warning naming what and why, then the function
-    itself, call after call. An input the function itself refuses raises the function's error, compiling left on."""
-    def broken_compile(function, **options):
-        def compiled(*args):
-            raise RuntimeError("InvalidCxxCompiler: no working C++ compiler found\nmore detail")
-        return compiled
-    monkeypatch.setattr(torch, "compile", broken_compile)
-
-    def double(x: torch.Tensor) -> torch.Tensor:
-        if x.ndim:
-            raise ValueError("double expected a 0-d tensor")
-        return 2 * x
-
-    twice = CompiledOrEager(double, "doubling")
-    with pytest.raises(ValueError, match="double expected a 0-d tensor"):
-        twice(torch.ones(2))
-    assert twice.failure is None
-    with pytest.warns(UserWarning, match=r"doubling \(RuntimeError: InvalidCxxCompiler: no working C\+\+ compiler found\)"):
-        assert twice(torch.tensor(3.0)) == 6.0
-    assert twice.failure.startswith("RuntimeError")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert twice(torch.tensor(4.0)) == 8.0
-
-
-def test_gathering_rows_in_parts_equals_index_select_and_its_gradient():
-    """Rows of two (complex64/128 on a CPU) and of three, in two parts as the encoding gathers them (the dense levels'
-    rows from the table's first row, the hashed levels' from mid-table): the values and the table's gradient are
-    index_select's, every part's gradient added into one buffer; a part whose features go unused adds nothing."""
-    generator = torch.Generator().manual_seed(3)
-    for width, dtype in ((2, torch.float32), (2, torch.float64), (3, torch.float32)):
-        table = torch.randn(50, width, generator=generator, dtype=dtype, requires_grad=True)
-        starts = (0, 10)
-        rows = [torch.randint(0, 40, (200,), generator=generator) for _ in starts]  # repeats: the backward must add them up
-        upstream = [torch.randn(200, width, generator=generator, dtype=dtype) for _ in starts]
-        gathered = gather_rows(table, rows, starts)
-        expected = [torch.index_select(table[start:], 0, part) for start, part in zip(starts, rows)]
-        assert all(found.dtype == dtype and torch.equal(found, wanted) for found, wanted in zip(gathered, expected))
-        (grad,) = torch.autograd.grad(sum((found * up).sum() for found, up in zip(gathered, upstream)), table)
-        (expected_grad,) = torch.autograd.grad(sum((wanted * up).sum() for wanted, up in zip(expected, upstream)), table)
-        assert torch.allclose(grad, expected_grad, atol=1e-6)
-        # only the second part used: its rows alone, counted from row 10, have a gradient
-        (grad,) = torch.autograd.grad((gather_rows(table, rows, starts)[1] * upstream[1]).sum(), table)
-        (expected_grad,) = torch.autograd.grad((torch.index_select(table[10:], 0, rows[1]) * upstream[1]).sum(), table)
-        assert torch.allclose(grad, expected_grad, atol=1e-6) and bool((grad[:10] == 0).all())
-    with pytest.raises(ValueError, match="a start for each part"):
-        gather_rows(table, rows, (0,))
-
-
 def test_hash_encoding_keeps_leading_axes_and_rejects_wrong_widths():
     encoding = small_encoding()
-    assert encoding(torch.rand(2, 7, 3)).shape == (2, 7, 8)
-    assert encoding(torch.zeros(0, 3)).shape == (0, 8)
-    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
-        encoding(torch.rand(4, 2))
+    for forward in (encoding, encoding.forward_reference):
+        assert forward(torch.rand(2, 7, 3)).shape == (2, 7, 8)
+        assert forward(torch.zeros(0, 3)).shape == (0, 8)
+        with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+            forward(torch.rand(4, 2))
+
+
+def test_hash_encoding_saves_only_its_table():
+    """Checkpoints hold the table alone (the levels are rebuilt from the arguments): its key must not change."""
+    assert list(small_encoding().state_dict()) == ["table"]
 
 
 def test_spherical_harmonics_are_orthonormal_on_the_sphere():

@@ -1,0 +1,240 @@
+"""nerf-bench: run a benchmark suite through the real commands and keep one JSON of results per suite.
+
+    nerf-bench run cpu-quick                      # a few minutes a scene (the procedural row needs no data)
+    nerf-bench run cpu --data-dir ../shared/data  # the 10-minute rows the README quotes
+    nerf-bench run cpu --only 'fern/*' --resume   # one scene; rows already measured on this machine are skipped
+    nerf-bench report                             # docs/results.md and its plots, from docs/results/*.json
+    nerf-bench list                               # the suites and their rows
+
+For each row of the suite (scene x preset x minutes x seed, :mod:`nerf_lightning.bench.suite`): ``nerf-train``
+trains the preset for that many minutes of training time (validation off), keeping a checkpoint at each of the
+row's minute marks; ``nerf-eval`` scores every mark on the held-out views (PSNR, SSIM, seconds a frame). The row,
+with the machine, the versions, the date and the exact commands, is written into ``<results>/<suite>.json`` as soon
+as it is measured, and the results table regenerated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from nerf_lightning.bench.suite import Row, Suite, SuiteError, load_suite, shipped_suites
+
+DEFAULT_RESULTS = Path("docs/results")
+DEFAULT_REPORT = Path("docs/results.md")
+DEFAULT_WORK = Path("outputs/bench")
+# where the real captures are found: --data-dir, else this variable, else the project's shared data folder
+DATA_DIR_VARIABLE = "NERF_LIGHTNING_DATA"
+DEFAULT_DATA_DIR = Path("../shared/data")
+
+
+class BenchmarkError(RuntimeError):
+    """A command of a row failed: the message names the command and its log."""
+
+
+def command(name: str) -> list[str]:
+    """The console script ``name`` (``nerf-train``) installed beside this Python, else ``python -m`` its module."""
+    script = Path(sys.executable).parent / name
+    if script.exists():
+        return [str(script)]
+    module = {"nerf-train": "train", "nerf-eval": "evaluate"}[name]
+    return [sys.executable, "-m", f"nerf_lightning.cli.{module}"]
+
+
+def shown(name: str, arguments: list[str]) -> str:
+    """The command as a user types it."""
+    return shlex.join([name, *arguments])
+
+
+def run_logged(name: str, arguments: list[str], log_path: Path) -> None:
+    """Run command ``name`` with ``arguments``, its output into ``log_path``; a failure raises with the log's end."""
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with log_path.open("w") as log:
+        log.write(shown(name, arguments) + "\n\n")
+        log.flush()
+        finished = subprocess.run([*command(name), *arguments], stdout=log, stderr=subprocess.STDOUT, check=False)
+    if finished.returncode != 0:
+        tail = "\n".join(log_path.read_text(errors="replace").splitlines()[-15:])
+        raise BenchmarkError(f"{name} failed (exit {finished.returncode}); its log: {log_path}\n{tail}")
+
+
+def data_root(row: Row, data_dir: Path) -> Path | None:
+    """The row's ``data.root`` under ``data_dir`` (None: the preset's own scene)."""
+    return None if row.data is None else data_dir / row.data
+
+
+def train_arguments(row: Row, run_dir: Path, root: Path | None) -> list[str]:
+    """``nerf-train`` overrides for a row: its preset and seed, validation off, a stop after ``row.minutes`` of
+    training time and checkpoints at the marks (:mod:`nerf_lightning.bench.callbacks`), then the row's overrides."""
+    marks = ", ".join(f"{m:g}" for m in row.marks)
+    return [
+        f"experiment={row.preset}", f"seed={row.seed}", f"paths.output_dir={run_dir}",
+        *([f"data.root={root}"] if root is not None else []),
+        # validation off (the marks are scored afterwards, on every held-out view): training time is all that runs
+        "data.val_every=null", "trainer.enable_progress_bar=false",
+        f"+callbacks.bench_stop={{_target_: nerf_lightning.bench.callbacks.StopAtTrainingMinutes, minutes: {row.minutes:g}}}",
+        f"+callbacks.bench_marks={{_target_: nerf_lightning.bench.callbacks.CheckpointAtMinutes, dirpath: {run_dir / 'marks'}, minutes: [{marks}]}}",
+        *row.overrides,
+    ]
+
+
+def eval_arguments(row: Row, checkpoint: Path, output_dir: Path) -> list[str]:
+    return [f"ckpt_path={checkpoint}", f"output_dir={output_dir}", f"device={row.device}",
+            *([f"max_views={row.eval_views}"] if row.eval_views else [])]
+
+
+def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[str, Any]:
+    """Train, then score every mark, of one row; returns its result (see the module docstring)."""
+    from nerf_lightning.bench.machine import provenance
+
+    root = data_root(row, data_dir)
+    run_dir = (work_dir / suite.name / row.slug).resolve()
+    arguments = train_arguments(row, run_dir, root.resolve() if root is not None else None)
+    started = time.perf_counter()
+    print(f"[{row.id}] training {row.minutes:g} min: {run_dir / 'train.log'}", flush=True)
+    run_logged("nerf-train", arguments, run_dir / "train.log")
+    wall_train = time.perf_counter() - started
+    marks = json.loads((run_dir / "marks" / "marks.json").read_text())
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    curve = []
+    for mark in marks:
+        output_dir = run_dir / "eval" / f"minute_{mark['minutes']:g}"
+        print(f"[{row.id}] scoring minute {mark['minutes']:g} (step {mark['step']})", flush=True)
+        run_logged("nerf-eval", eval_arguments(row, Path(mark["path"]), output_dir), output_dir / "eval.log")
+        scored = json.loads((output_dir / "eval.json").read_text())
+        curve.append({"minutes": mark["minutes"], "step": mark["step"], "training_seconds": mark["training_seconds"],
+                      "psnr": scored["mean"].get("psnr"), "ssim": scored["mean"].get("ssim"),
+                      "depth_error": scored["mean"].get("depth_error"), "seconds_per_frame": scored.get("seconds_per_frame"),
+                      "views": scored["views"], "frame_size": scored.get("frame_size")})
+    last = curve[-1]
+    # the commands as a user types them, with the data where the suite names it
+    shown_root = Path(os.path.relpath(root, Path.cwd())) if root is not None else None
+    shown_run = work_dir / suite.name / row.slug
+    last_checkpoint = shown_run / "marks" / f"minute_{last['minutes']:g}.ckpt"
+    return {
+        "id": row.id, "suite": suite.name, "scene": row.scene, "preset": row.preset, "minutes": row.minutes, "seed": row.seed,
+        "data": row.data, "overrides": list(row.overrides), "device": row.device,
+        "steps": last["step"], "training_minutes": round(last["training_seconds"] / 60, 2),
+        "seconds_per_step": round(last["training_seconds"] / max(last["step"], 1), 4),
+        "psnr": last["psnr"], "ssim": last["ssim"], "depth_error": last["depth_error"],
+        "seconds_per_frame": last["seconds_per_frame"], "frame_size": last["frame_size"], "views": last["views"],
+        "samples_per_ray": metrics.get("train/samples_per_ray"), "curve": curve,
+        "wall_seconds": round(time.perf_counter() - started, 1), "wall_seconds_training": round(wall_train, 1),
+        "commands": {
+            "bench": shown("nerf-bench", ["run", suite.name, "--only", row.id, *(["--data-dir", str(data_dir)] if row.data else [])]),
+            "train": shown("nerf-train", train_arguments(row, shown_run, shown_root)),
+            "eval": shown("nerf-eval", eval_arguments(row, last_checkpoint, shown_run / "eval")),
+        },
+        **provenance(row.device),
+    }
+
+
+def results_path(results_dir: Path, suite: Suite) -> Path:
+    return results_dir / f"{suite.name}.json"
+
+
+def read_results(path: Path) -> dict[str, Any]:
+    if not path.exists():
+        return {"suite": path.stem, "rows": []}
+    try:
+        results = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise SuiteError(f"{path} is not a results JSON ({error}); move it away to start the suite's results afresh") from None
+    if not isinstance(results, dict) or not isinstance(results.get("rows"), list):
+        raise SuiteError(f"{path}: expected {{suite, rows: [...]}}, as nerf-bench writes")
+    return results
+
+
+def write_results(path: Path, results: dict[str, Any]) -> None:
+    from nerf_lightning.io import write_json
+
+    results["rows"].sort(key=lambda r: (r["scene"], r["preset"], r["minutes"], r["seed"], r["machine"]["name"]))
+    write_json(path, results)
+
+
+def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, work_dir: Path, resume: bool = False,
+              report: Path | None = DEFAULT_REPORT) -> list[dict[str, Any]]:
+    """Measure ``rows`` of ``suite`` one after another, each written into ``<results_dir>/<suite>.json`` as soon as it
+    is measured (replacing that row's earlier result from this machine); rows without their data are skipped with a
+    line. ``resume``: skip rows this machine has measured already. Regenerates ``report`` after each row."""
+    from nerf_lightning.bench.machine import machine
+
+    path = results_path(results_dir, suite)
+    here = machine(rows[0].device if rows else "cpu")["name"]
+    measured = []
+    for row in rows:
+        results = read_results(path)
+        done = [r for r in results["rows"] if r["id"] == row.id and r["machine"]["name"] == here]
+        if resume and done:
+            print(f"[{row.id}] measured on {here} on {done[0]['date'][:10]}: skipped (--resume)", flush=True)
+            continue
+        root = data_root(row, data_dir)
+        if root is not None and not root.exists():
+            print(f"[{row.id}] skipped: {root} not found (--data-dir, or {DATA_DIR_VARIABLE}, names the data folder)", flush=True)
+            continue
+        result = measure_row(row, suite, data_dir, work_dir)
+        results = read_results(path)  # again: another suite run may have written meanwhile
+        results["rows"] = [r for r in results["rows"] if not (r["id"] == row.id and r["machine"]["name"] == result["machine"]["name"])]
+        results["rows"].append(result)
+        write_results(path, results)
+        measured.append(result)
+        print(f"[{row.id}] {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f}, {result['steps']} steps, "
+              f"{result['seconds_per_step']:.4f} s a step, {result['seconds_per_frame']:.2f} s a frame -> {path}", flush=True)
+        if report is not None:
+            from nerf_lightning.bench.report import write_report
+
+            write_report(results_dir, report)
+    return measured
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="nerf-bench", description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog="\n".join(__doc__.splitlines()[1:8]))
+    commands = parser.add_subparsers(dest="command", required=True)
+    run = commands.add_parser("run", help="measure a suite's rows")
+    run.add_argument("suite", help=f"a shipped suite ({', '.join(sorted(shipped_suites()))}) or a suite .yaml file")
+    run.add_argument("--only", nargs="+", metavar="PATTERN", help="rows whose id (scene/preset/<m>min/seed<s>) matches a glob")
+    run.add_argument("--resume", action="store_true", help="skip rows already measured on this machine")
+    run.add_argument("--data-dir", type=Path, default=None, help=f"where the rows' data lie (default: ${DATA_DIR_VARIABLE}, else {DEFAULT_DATA_DIR})")
+    run.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="folder of the suites' results JSONs")
+    run.add_argument("--report", type=Path, default=DEFAULT_REPORT, help="the results table regenerated after each row")
+    run.add_argument("--work", type=Path, default=DEFAULT_WORK, help="where the runs (checkpoints, logs, renders) go")
+    report = commands.add_parser("report", help="regenerate the results table and plots from the results JSONs")
+    report.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
+    report.add_argument("--report", type=Path, default=DEFAULT_REPORT)
+    listing = commands.add_parser("list", help="the suites and their rows")
+    listing.add_argument("suite", nargs="?")
+    args = parser.parse_args(argv)
+
+    try:
+        if args.command == "list":
+            for name in [args.suite] if args.suite else sorted(shipped_suites()):
+                suite = load_suite(name)
+                print(f"{suite.name} ({suite.path}):")
+                for row in suite.rows:
+                    print(f"  {row.id}  data={row.data or '(built in)'}  marks={', '.join(f'{m:g}' for m in row.marks)}  device={row.device}")
+        elif args.command == "report":
+            from nerf_lightning.bench.report import write_report
+
+            print(write_report(args.results, args.report))
+        else:
+            suite = load_suite(args.suite)
+            data_dir = args.data_dir or Path(os.environ.get(DATA_DIR_VARIABLE, DEFAULT_DATA_DIR))
+            run_suite(suite, suite.select(args.only), data_dir, args.results, args.work, args.resume, args.report)
+    except (SuiteError, BenchmarkError) as error:
+        print(f"nerf-bench: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print("nerf-bench: interrupted; rows measured so far are in the results JSON (--resume goes on from there)", file=sys.stderr)
+        raise SystemExit(130) from None
+
+
+if __name__ == "__main__":
+    main()

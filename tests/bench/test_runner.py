@@ -1,0 +1,86 @@
+"""nerf-bench run as a user runs it: the cpu-quick suite's smallest row end to end (CI keeps the runner from rotting),
+--resume, rows without their data, the results table regenerated from the JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = [str(Path(sys.executable).parent / "nerf-bench")] if (Path(sys.executable).parent / "nerf-bench").exists() else [
+    sys.executable, "-m", "nerf_lightning.bench.runner"]
+
+
+def bench(*arguments, cwd):
+    return subprocess.run([*BENCH, *arguments], cwd=cwd, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def quick_row(tmp_path_factory):
+    """The cpu-quick suite's procedural row, measured once for the module."""
+    folder = tmp_path_factory.mktemp("bench")
+    result = bench("run", "cpu-quick", "--only", "procedural/*", "--results", "results", "--report", "results.md", "--work", "work", cwd=folder)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return folder, result
+
+
+def test_the_smallest_row_trains_scores_and_writes_its_json(quick_row):
+    folder, result = quick_row
+    results = json.loads((folder / "results" / "cpu-quick.json").read_text())
+    [row] = results["rows"]
+    assert row["id"] == "procedural/fast/0.5min/seed0" and row["suite"] == "cpu-quick"
+    # trained for real: steps taken, the marks scored in order, a PSNR well above an empty picture's
+    assert row["steps"] > 10 and [point["minutes"] for point in row["curve"]] == [0.25, 0.5]
+    assert row["curve"][0]["step"] <= row["curve"][1]["step"] == row["steps"]
+    assert row["training_minutes"] <= 0.5 + 0.1
+    assert 12.0 < row["psnr"] < 60.0 and 0.0 < row["ssim"] <= 1.0
+    assert row["seconds_per_frame"] > 0 and row["seconds_per_step"] > 0 and math.isfinite(row["samples_per_ray"])
+    # where and with what it was measured, and how to measure it again
+    assert {"name", "cpu", "cores", "gpu"} <= set(row["machine"]) and row["machine"]["gpu"] is None
+    assert {"torch", "lightning", "nerf-lightning"} <= set(row["versions"]) and row["date"][:2] == "20"
+    assert row["commands"]["train"].startswith("nerf-train experiment=fast seed=0")
+    assert row["commands"]["bench"] == "nerf-bench run cpu-quick --only procedural/fast/0.5min/seed0"
+    assert "psnr" not in result.stderr.lower() or "Traceback" not in result.stderr
+
+
+def test_the_results_table_and_plot_are_generated(quick_row):
+    folder, _ = quick_row
+    report = (folder / "results.md").read_text()
+    assert "## procedural" in report and "| cpu-quick | fast | " in report
+    assert "![procedural: held-out PSNR against training minutes](results/procedural.png)" in report
+    assert (folder / "results" / "procedural.png").stat().st_size > 1000
+    assert "nerf-bench run cpu-quick --only procedural/fast/0.5min/seed0" in report
+    # the rows not measured here are listed, with the command that measures them
+    assert "## Not measured yet" in report and "`nerf-bench run gpu`" in report
+    # regenerating from the JSON gives the same page
+    (folder / "results.md").unlink()
+    assert bench("report", "--results", "results", "--report", "results.md", cwd=folder).returncode == 0
+    assert (folder / "results.md").read_text() == report
+
+
+def test_resume_skips_a_row_measured_on_this_machine(quick_row):
+    folder, _ = quick_row
+    result = bench("run", "cpu-quick", "--only", "procedural/*", "--resume", "--results", "results", "--report", "results.md",
+                   "--work", "work", cwd=folder)
+    assert result.returncode == 0 and "skipped (--resume)" in result.stdout
+
+
+def test_a_row_without_its_data_is_skipped_with_a_line(tmp_path):
+    result = bench("run", "cpu", "--only", "lego/*", "--data-dir", str(tmp_path / "nowhere"), "--results", "results", cwd=tmp_path)
+    assert result.returncode == 0
+    assert f"skipped: {tmp_path / 'nowhere' / 'nerf_synthetic' / 'lego'} not found" in result.stdout
+    assert not (tmp_path / "results").exists()
+
+
+def test_bad_arguments_are_answered_in_one_line(tmp_path):
+    result = bench("run", "cpu", "--only", "chair/*", cwd=tmp_path)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "--only chair/* matches no row of suite 'cpu'" in result.stderr
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "cpu.json").write_text("{not json")
+    result = bench("report", "--results", "results", cwd=tmp_path)
+    assert result.returncode == 2 and "results/cpu.json is not a results JSON" in result.stderr

@@ -1,63 +1,53 @@
-"""nerf-process-data on fox's 50 photos against the published poses: how many register, how far the recovered cameras
-are from the published ones after a similarity alignment, and how long each stage takes.
+"""nerf-process-data on a capture with published poses (fox's 50 photos): how many register, how far the recovered
+cameras are from the published ones after a similarity alignment, and the seconds of each stage.
 
-    .venv/bin/python scripts/bench_process_data.py --root ../shared/data/nerfstudio/fox --mappers-over-seeds 0 1 2 3 \
-        --out docs/bench/process_data_fox.json
+    .venv/bin/python scripts/bench_process_data.py [--root ../shared/data/nerfstudio/fox] [--mapper auto]
+        [--photos N] [--max-size 1600] [--mappers-over-seeds 0 1 2 3] [--work DIR] [--out FILE.json]
 
-Fixed settings, the command's defaults: one shared OPENCV camera, features read at 1600 px on the long side, 8192
-SIFT features an image, exhaustive matching (under 100 images), ``mapper=auto`` (both mappers, the better model
-kept; ``--mapper``), seed 0. The photos are ``<root>/images``, the published poses ``<root>/transforms.json``; the
-capture is written to ``--work`` (a temporary folder by default).
-Position errors are percentages of the published cameras' spread (the root mean square distance of their centres
-from their mean). Exits 0 with "skipped" when --root is missing.
+The command's own settings (:func:`nerf_lightning.data.capture.process_capture`): one shared OPENCV camera, features
+read at ``--max-size`` px on the long side (1600), 8192 SIFT features an image, exhaustive matching (under 100
+images), ``--mapper`` (auto: both mappers, the model that explains more verified matches kept), seed 0. The photos are
+``<root>/images`` (``--photos N``: N of them, evenly spaced by name, for a quick run), the published poses
+``<root>/transforms.json``; the capture is written to ``--work`` (a temporary folder by default). Position errors are
+percentages of the published cameras' spread (the root mean square distance of their centres from their mean).
 
 ``--mappers-over-seeds``: then, on the same images, features once and for each seed the matching (its RANSAC seeded)
 and both mappers, global and incremental, each compared with the published poses and scored by the fraction of
-verified matches its poses explain (what ``mapper=auto`` keeps the better model by): how often each mapper places
-the cameras as published, and whether the score picks the right one.
+verified matches its poses explain (what ``mapper=auto`` keeps the better model by): how often each mapper places the
+cameras as published, and whether the score picks the right one.
+
+Prints the JSON (and writes it with ``--out``); exits 0 with ``{"skipped": ...}`` when the capture or pycolmap (the
+colmap extra) is missing.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
-import os
-import platform
-import sys
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-from nerf_lightning.data.capture import compare_with_reference, process_capture
-from nerf_lightning.data.capture.colmap import (
-    colmap_log,
-    exhaustive_pairs,
-    extract_features,
-    map_images,
-    match_features,
-    reconstruction_to_transforms,
-    verified_matches_explained,
-)
+from nerf_lightning.bench.micro import SHARED_DATA, finish, seed_everything, skip, start_result
+from nerf_lightning.data.scene import evenly_spaced
 from nerf_lightning.io import write_json
 
 
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def mappers_over_seeds(images: Path, reference: Path, seeds: list[int], work: Path) -> list[dict]:
+def mappers_over_seeds(images: Path, reference: Path, seeds: list[int], work: Path, max_size: int) -> list[dict]:
     """For each seed: the matches verified with that RANSAC seed, then each mapper, compared with ``reference``."""
+    from nerf_lightning.data.capture import compare_with_reference
+    from nerf_lightning.data.capture.colmap import (
+        colmap_log, exhaustive_pairs, extract_features, map_images, match_features, reconstruction_to_transforms,
+        verified_matches_explained,
+    )
+
     names = sorted(path.name for path in images.iterdir())
     results = []
     with colmap_log(False):
-        extract_features(work / "features.db", images, names, "OPENCV", True, 1600, 8192, False)
+        extract_features(work / "features.db", images, names, "OPENCV", True, max_size, 8192, False)
         for seed in seeds:
             database = work / f"seed{seed}.db"
             shutil.copy(work / "features.db", database)
@@ -69,61 +59,72 @@ def mappers_over_seeds(images: Path, reference: Path, seeds: list[int], work: Pa
                 explained, total = verified_matches_explained(database, model)
                 write_json(work / f"{seed}_{mapper}" / "transforms.json", reconstruction_to_transforms(model))
                 errors = compare_with_reference(work / f"{seed}_{mapper}", reference)
-                results.append({"seed": seed, "mapper": mapper, "registered": model.num_reg_images(), "mapping_seconds": round(seconds, 1),
-                                "mean_reprojection_error_px": round(model.compute_mean_reprojection_error(), 3),
-                                "verified_matches_explained": round(explained / total, 4),
-                                "median_position_error_percent_of_spread": round(errors["median_position_error_percent_of_spread"], 3),
-                                "median_rotation_error_deg": round(errors["median_rotation_error_deg"], 3)})
-                print(json.dumps(results[-1]), flush=True)
+                results.append({"seed": seed, "mapper": mapper, "registered": model.num_reg_images(), "mapping_seconds": round(seconds, 2),
+                                "mean_reprojection_error_px": model.compute_mean_reprojection_error(),
+                                "verified_matches_explained": explained / total,
+                                "median_position_error_percent_of_spread": errors["median_position_error_percent_of_spread"],
+                                "median_rotation_error_deg": errors["median_rotation_error_deg"]})
+                print(json.dumps(results[-1]), file=sys.stderr, flush=True)
     return results
 
 
+def chosen_photos(images: Path, count: int | None, folder: Path) -> Path:
+    """``images`` itself, or ``count`` of its photos, evenly spaced by name, copied into ``folder``."""
+    if count is None:
+        return images
+    names = sorted(path.name for path in images.iterdir() if path.is_file())
+    folder.mkdir(parents=True)
+    for index in evenly_spaced(len(names), count):
+        shutil.copy(images / names[index], folder / names[index])
+    return folder
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--root", type=Path, required=True, help="a capture folder with images/ and transforms.json")
-    parser.add_argument("--work", type=Path, default=None, help="where to write the processed capture (default: a temporary folder)")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="\n".join(__doc__.splitlines()[1:]))
+    parser.add_argument("--root", type=Path, default=SHARED_DATA / "nerfstudio" / "fox", help="a capture folder with images/ and transforms.json (default: fox)")
     parser.add_argument("--mapper", choices=("auto", "global", "incremental"), default="auto")
+    parser.add_argument("--photos", type=int, default=None, help="only this many photos, evenly spaced by name (default all)")
+    parser.add_argument("--max-size", type=int, default=1600, help="the long side the features are read at (default 1600, the command's)")
     parser.add_argument("--mappers-over-seeds", type=int, nargs="*", default=[], help="seeds of the mapper comparison (none: skip it)")
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--work", type=Path, default=None, help="where to write the processed capture (default: a temporary folder)")
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
-    if not (args.root / "images").is_dir():
-        print(json.dumps({"skipped": f"data not found: {args.root / 'images'}"}))
-        return
+    if not (args.root / "images").is_dir() or not (args.root / "transforms.json").is_file():
+        skip(f"data not found: {args.root} (images/ and transforms.json)")
+    if importlib.util.find_spec("pycolmap") is None:
+        skip("pycolmap (the colmap extra) is not installed: pip install nerf-lightning[colmap]")
+    if args.photos is not None and args.photos < 3:
+        raise SystemExit("--photos must be 3 or more (the cameras are compared after a similarity alignment)")
+    seed_everything(0)
 
     import pycolmap
 
-    with tempfile.TemporaryDirectory() as temporary:
+    from nerf_lightning.data.capture import compare_with_reference, process_capture
+
+    with tempfile.TemporaryDirectory(prefix="bench_process_data_") as temporary:
+        images = chosen_photos(args.root / "images", args.photos, Path(temporary) / "photos")
         work = args.work or Path(temporary) / "capture"
-        report = process_capture(args.root / "images", work, mapper=args.mapper, progress=False, seed=0)
+        started = time.perf_counter()
+        report = process_capture(images, work, mapper=args.mapper, max_size=args.max_size, progress=False, seed=0)
+        total = time.perf_counter() - started
         errors = compare_with_reference(work, args.root / "transforms.json")
-        seeds = mappers_over_seeds(work / "images", args.root / "transforms.json", args.mappers_over_seeds, Path(temporary)) if args.mappers_over_seeds else []
+        seeds = (mappers_over_seeds(work / "images", args.root / "transforms.json", args.mappers_over_seeds, Path(temporary), args.max_size)
+                 if args.mappers_over_seeds else [])
     result = {
-        "command": " ".join([Path(sys.executable).name, *sys.argv]),
-        "images_given": report["images_given"],
-        "registered": report["registered"],
-        "unregistered": report["unregistered"],
+        **start_result("cpu"), "benchmark": "process_data", "root": str(args.root),
+        "pycolmap": pycolmap.__version__, "pycolmap_cuda": bool(getattr(pycolmap, "has_cuda", False)),
+        "images_given": report["images_given"], "registered": report["registered"], "unregistered": report["unregistered"],
         "compared_with_published": errors["compared"],
-        "median_position_error_percent_of_spread": round(errors["median_position_error_percent_of_spread"], 4),
-        "max_position_error_percent_of_spread": round(errors["max_position_error_percent_of_spread"], 4),
-        "median_rotation_error_deg": round(errors["median_rotation_error_deg"], 4),
-        "max_rotation_error_deg": round(errors["max_rotation_error_deg"], 4),
-        "published_spread": round(errors["spread"], 4),
-        "mean_reprojection_error_px": round(report["mean_reprojection_error_px"], 4),
-        "mean_track_length": round(report["mean_track_length"], 3),
-        "points": report["points"],
-        "camera": report["camera"],
-        "verified_matches_explained": report["verified_matches_explained"],
-        "mappers": report["mappers"],
+        **{key: errors[key] for key in ("median_position_error_percent_of_spread", "max_position_error_percent_of_spread",
+                                        "median_rotation_error_deg", "max_rotation_error_deg")},
+        "published_spread": errors["spread"],
+        **{key: report[key] for key in ("mean_reprojection_error_px", "mean_track_length", "points", "camera", "verified_matches_explained", "mappers")},
         "settings": {key: report[key] for key in ("matcher", "mapper", "camera_model", "single_camera", "max_size")},
-        "seconds": report["seconds"],
-        "mappers_over_seeds": seeds,
-        "per_image": errors["per_image"],
-        "machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
-                    "pycolmap": pycolmap.__version__, "pycolmap_cuda": bool(getattr(pycolmap, "has_cuda", False))},
+        "total_s": total, "seconds": report["seconds"],
+        "mappers_over_seeds": seeds, "per_image": errors["per_image"],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({key: value for key, value in result.items() if key != "per_image"}, indent=2))
+    finish(result, args.out)
 
 
 if __name__ == "__main__":

@@ -1,63 +1,89 @@
-"""Seconds of a training step on this machine's CPU, the hash grids' passes without gradients compiled
-(``compile_evaluation``, the default) and as written, alternating in one process.
+"""Seconds of a training step of a preset, trained through the library's own step (nerf_lightning.training.train).
 
-    .venv/bin/python scripts/bench_train_step.py --ckpt <run>/checkpoints/last.ckpt --out docs/bench/train_step_compiled_cpu.json
+    .venv/bin/python scripts/bench_train_step.py [--preset fast_blender] [--root DIR] [--steps 100] [--warmup 10]
+        [--device auto] [--seed 0] [--out FILE.json] [-- HYDRA OVERRIDES]
+    .venv/bin/python scripts/bench_train_step.py --preset fast --steps 20 -- data.scene.size=16   # no data needed
 
-A checkpoint's model in training mode, ``scripts/bench_gather.py``'s training step: 1024 random rays of its training
-images, the render, the photometric loss against random colours and the sampler's losses, backward, Adam.
-``--blocks`` blocks of 10 steps each way (two cycles of a proposal sampler's ``update_every`` of 5: its networks learn
-on one step in five and run without gradients on the others), the ways' order alternating, after warm-up steps that
-compile. Seed fixed.
+Composes ``experiment=<--preset>`` as ``nerf-train`` does (its ``data.root``: ``--root``, else the preset's scene in
+../shared/data, lego for fast_blender; extra Hydra overrides after ``--``) and trains it with
+:func:`nerf_lightning.training.train` for ``--warmup`` + ``--steps`` steps, validation, checkpoints, snapshots, logger
+and progress bar off, a :class:`~nerf_lightning.bench.micro.StepTimer` timing the ``--steps`` steps after the warm-up
+(waiting for a GPU at each mark): ``step`` is the training step itself (forward, losses, backward, optimiser step),
+``loop`` the whole loop from one step's end to the next's (drawing the batch included). Both include the periodic
+work of the steps they time (an occupancy grid's refresh every ``update_every`` steps, a proposal network's
+update): the mean counts it, the median mostly not. Rays a second: ``data.batch_size`` over the median. Prints the
+JSON (and writes it with ``--out``); exits 0 with ``{"skipped": ...}`` when the scene is missing.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import platform
-import statistics
 import sys
-import time
+import tempfile
 from pathlib import Path
 
-import torch
+from nerf_lightning.bench.micro import add_common_arguments, compose_preset, finish, parse_device, seed_everything, start_result, summarize
+from nerf_lightning.training import train
 
-from nerf_lightning.checkpoints import load_model, load_run_data
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_gather import interleaved_seconds, training_step_of  # noqa: E402  the same training step and blocks
+def accelerator_overrides(device: str) -> list[str]:
+    """``trainer.accelerator`` (and ``trainer.devices``) for ``--device``: auto leaves the preset's choice."""
+    device = device.strip().lower()
+    if device == "auto":
+        return []
+    if device == "cpu":
+        return ["trainer.accelerator=cpu", "trainer.devices=1"]
+    if device == "mps":
+        return ["trainer.accelerator=mps", "trainer.devices=1"]
+    index = device.partition(":")[2] or "0"  # cuda or cuda:N
+    return ["trainer.accelerator=gpu", f"trainer.devices=[{index}]"]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--ckpt", type=Path, required=True, help="a nerf-train checkpoint of a hash-grid field")
-    parser.add_argument("--blocks", type=int, default=10)
-    parser.add_argument("--out", type=Path, required=True)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="\n".join(__doc__.splitlines()[1:]))
+    parser.add_argument("--preset", default="fast_blender", help="an experiment preset (default fast_blender)")
+    parser.add_argument("--root", type=Path, default=None, help="data.root (default: the preset's scene in ../shared/data)")
+    parser.add_argument("--steps", type=int, default=100, help="steps timed after the warm-up (default 100)")
+    add_common_arguments(parser, warmup=10, repeats=None)
+    parser.add_argument("overrides", nargs="*", help="more Hydra overrides, after --")
     args = parser.parse_args()
-    torch.manual_seed(0)
-    model, info = load_model(args.ckpt)
-    encodings = [module for module in model.modules() if hasattr(module, "compile_evaluation")]
-    model.train()
-    training_step = training_step_of(model, load_run_data(info["config"]).scene.train)
+    if args.steps < 2 or args.warmup < 0:
+        raise SystemExit("--steps must be >= 2 and --warmup >= 0")
+    parse_device(args.device)  # one line for a device this machine lacks
+    seed_everything(args.seed)
 
-    def compiled(on: bool) -> None:
-        for encoding in encodings:
-            encoding.compile_evaluation = on
+    with tempfile.TemporaryDirectory(prefix="bench_train_step_") as run_dir:
+        timings = Path(run_dir) / "step_seconds.json"
+        overrides = [
+            f"trainer.max_steps={args.warmup + args.steps}", "data.val_every=null", "data.val_steps=[]",
+            "++trainer.limit_val_batches=0", "++trainer.num_sanity_val_steps=0", "trainer.max_time=null",
+            "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false", "++trainer.enable_checkpointing=false",
+            "callbacks=none", "~logger",
+            f"seed={args.seed}", *accelerator_overrides(args.device),
+            "+callbacks.step_timer._target_=nerf_lightning.bench.micro.StepTimer",
+            f"+callbacks.step_timer.warmup_steps={args.warmup}", f"+callbacks.step_timer.path='{timings}'",
+            *args.overrides,
+        ]
+        cfg, root = compose_preset(args.preset, overrides, args.root, output_dir=run_dir)
+        metrics = train(cfg)
+        timed = json.loads(timings.read_text())
 
-    started = time.perf_counter()
-    for _ in range(10):  # the first passes without gradients compile
-        training_step()
-    warm_up = time.perf_counter() - started
-    seconds = interleaved_seconds(training_step, {"compiled": lambda: compiled(True), "as_written": lambda: compiled(False)},
-                                  args.blocks, 10)
-    result = {"checkpoint": str(args.ckpt.resolve()), "step": info["global_step"], "torch": torch.__version__,
-              "threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
-              "warm_up_s": round(warm_up, 2),
-              **{way: {"mean_s": round(statistics.mean(values), 4), "median_s": round(statistics.median(values), 4), "steps": len(values)}
-                 for way, values in seconds.items()}}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2))
+    step, loop = summarize(timed["step_s"]), summarize(timed["loop_s"])
+    batch_size = int(cfg.data.batch_size)
+    result = {
+        **start_result(timed["device"] or args.device),
+        "benchmark": "train_step", "preset": args.preset, "root": None if root is None else str(root), "overrides": args.overrides,
+        "device": timed["device"], "precision": str(cfg.trainer.precision), "callbacks": list(cfg.get("callbacks") or {}), "seed": args.seed, "batch_size": batch_size,
+        "warmup_steps": args.warmup, "steps": len(timed["step_s"]), "global_step": metrics["step"],
+        "rays_per_second": batch_size / step["median_s"], "rays_per_second_loop": batch_size / loop["median_s"],
+        "samples_per_ray": metrics.get("train/samples_per_ray"), "final_train_loss": metrics.get("train/loss"),
+        "step": step, "loop": loop,
+    }
+    finish(result, args.out)
+    print(f"{args.preset}: {1000 * step['median_s']:.1f} ms a step (median; mean {1000 * step['mean_s']:.1f} ms, "
+          f"loop {1000 * loop['median_s']:.1f} ms), {result['rays_per_second']:,.0f} rays/s on {timed['device']}", file=sys.stderr)
 
 
 if __name__ == "__main__":

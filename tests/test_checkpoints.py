@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from nerf_lightning.checkpoints import AtomicCheckpointIO, checkpoint_globals, load_model, read_checkpoint, run_dir_of
-from tests.conftest import run_cli
 
 TINY_IMAGE_RUN = ["experiment=image", "data.downscale=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
                   "trainer.enable_progress_bar=false"]
@@ -30,23 +29,6 @@ def test_a_file_that_is_not_a_nerf_train_checkpoint_is_refused(tmp_path):
 def test_run_dir_of():
     assert run_dir_of("/a/run/checkpoints/last.ckpt").as_posix() == "/a/run"
     assert run_dir_of("/a/elsewhere/model.ckpt").as_posix() == "/a/elsewhere"
-
-
-def test_a_command_asks_the_model_for_what_it_needs_and_refuses_a_model_without_it_in_one_line(make_config, tmp_path):
-    """An image field renders no camera and has no density: nerf-eval and nerf-export say so by capability."""
-    from nerf_lightning.outputs.evaluation import evaluate_checkpoint
-    from nerf_lightning.outputs.export import export_model
-    from nerf_lightning.training import train
-
-    train(make_config("experiment=image", "data.downscale=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
-                      "trainer.enable_progress_bar=false", run_dir=tmp_path / "image"))
-    ckpt = tmp_path / "image" / "checkpoints" / "last.ckpt"
-    model, info = load_model(ckpt)
-    assert info["kind"] == "image_field" and info["global_step"] == 2
-    with pytest.raises(ValueError, match="nerf-eval needs a model that renders a camera; this checkpoint's model, ImageFieldModule, has none"):
-        evaluate_checkpoint(ckpt, tmp_path / "eval")
-    with pytest.raises(ValueError, match="format=obj needs a density to mesh .*ImageFieldModule.*nothing nerf-export writes"):
-        export_model(model, "obj", tmp_path / "export", {})
 
 
 def test_a_radiance_field_checkpoint_of_0_1_is_refused_in_one_line_naming_its_version(tmp_path):
@@ -183,12 +165,3 @@ def test_lightnings_resume_reader_refuses_the_payload_when_told_weights_only(tra
         with pytest.warns(UserWarning, match="TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD"):
             reader.load_checkpoint(shared, weights_only=None)
     assert marker.exists()
-
-
-def test_nerf_train_prints_no_lightning_cloud_adverts(tmp_path):
-    """Lightning logs a litlogger tip on every run, and a litmodels one when it adds its own ModelCheckpoint
-    (callbacks=none); nerf_lightning.training filters both out of its log, nothing else."""
-    result = run_cli("train", *TINY_IMAGE_RUN, "callbacks=none", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
-    output = result.stdout + result.stderr
-    assert "GPU available" in output  # Lightning's other info lines still show
-    assert "litmodels" not in output and "litlogger" not in output and "💡" not in output

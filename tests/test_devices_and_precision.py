@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 
@@ -14,7 +13,6 @@ from torch.utils._pytree import tree_leaves
 
 from hydra.utils import instantiate
 
-from nerf_lightning.callbacks import CheckpointAtMinutes, StopAtTrainingMinutes
 from nerf_lightning.devices import resolve_device
 from tests.test_experiments import EXPERIMENTS, tiny_data, tiny_overrides  # noqa: F401 (tiny_data is a fixture)
 
@@ -125,24 +123,3 @@ def test_a_bad_device_stops_the_command_in_one_line(command, tmp_path):
                             cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "device must be auto, cpu, cuda, cuda:<index> or mps, got 'gpu'" in result.stderr
-
-
-def test_checkpoints_at_training_minutes(tiny_data, make_config, scene_cache, monkeypatch, tmp_path):
-    """A mark reached during training gets that step's weights; one training never reaches, the last weights."""
-    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    marks = CheckpointAtMinutes(str(tmp_path / "marks"), minutes=[60.0, 1e-6])
-    trainer = fit(make_config(*tiny_overrides("fast", tiny_data), "data.val_every=null", "trainer.max_steps=3"), marks)
-    listed = json.loads((tmp_path / "marks" / "marks.json").read_text())
-    assert [(m["minutes"], m["step"]) for m in listed] == [(1e-6, 1), (60.0, trainer.global_step)]
-    assert torch.load(tmp_path / "marks" / "minute_1e-06.ckpt", weights_only=False)["global_step"] == 1
-    with pytest.raises(ValueError, match="minutes"):
-        CheckpointAtMinutes(str(tmp_path), minutes=[0])
-
-
-def test_training_stops_at_training_minutes(tiny_data, make_config, scene_cache, monkeypatch):
-    """The first step takes longer than 1e-6 minutes of training: the run stops after it, not at max_steps."""
-    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    trainer = fit(make_config(*tiny_overrides("fast", tiny_data), "data.val_every=null", "trainer.max_steps=5"), StopAtTrainingMinutes(1e-6))
-    assert trainer.global_step == 1
-    with pytest.raises(ValueError, match="minutes"):
-        StopAtTrainingMinutes(0)

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from nerf_lightning.cli.export import export
 from nerf_lightning.config import compose_config
 from nerf_lightning.data.formats import load_procedural
 from nerf_lightning.data.formats.procedural import surface_distance
 from nerf_lightning.outputs.mesh import read_mesh
 from nerf_lightning.metrics import chamfer_distance
 from nerf_lightning.training import train
+from tests.conftest import run_cli
 
 # Measured with these settings (seed 0, docs/benchmarks.md): val PSNR 25.5 dB, SSIM 0.93, depth error 0.058,
 # the mesh's Chamfer distance to the true surfaces 0.021 (one grid step of the 128^3 export is 0.024).
@@ -31,7 +31,8 @@ def test_nerf_procedural_preset_reaches_its_figures(tmp_path, scene_cache, monke
     assert metrics["val/psnr"] > 23.0
     assert metrics["val/depth_error"] < 0.1
 
-    mesh = export(compose_config([f"ckpt_path={run / 'checkpoints' / 'best.ckpt'}", f"output_dir={tmp_path / 'mesh'}"], config_name="export"))
+    run_cli("export", f"ckpt_path={run / 'checkpoints' / 'best.ckpt'}", f"output_dir={tmp_path / 'mesh'}", cwd=tmp_path)
+    mesh = tmp_path / "mesh" / "mesh.ply"
     vertices = torch.from_numpy(np.asarray(read_mesh(mesh).vertices)).double()
     surface = load_procedural(cache_dir=scene_cache).splits["test"].surface_points()
     distances = chamfer_distance(vertices, surface, surface_distance(vertices))

@@ -115,3 +115,21 @@ def test_render_view_of_a_radiance_field_is_its_rays_rendered(make_config):
     assert frame["rgb"].shape == (16, 16, 3) and frame["depth"].shape == (16, 16) and frame["accumulation"].shape == (16, 16)
     torch.testing.assert_close(frame["rgb"].reshape(-1, 3), out["rgb"])
     assert model.render_view(views.K[0], views.c2w[0], 16, 16, abort=lambda: True) is None
+
+
+def test_a_command_asks_the_model_for_what_it_needs_and_refuses_a_model_without_it_in_one_line(make_config, tmp_path):
+    """An image field renders no camera and has no density: nerf-eval and nerf-export say so by capability."""
+    from nerf_lightning.checkpoints import load_model
+    from nerf_lightning.outputs.evaluation import evaluate_checkpoint
+    from nerf_lightning.outputs.export import export_model
+    from nerf_lightning.training import train
+
+    train(make_config("experiment=image", "data.downscale=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
+                      "trainer.enable_progress_bar=false", run_dir=tmp_path / "image"))
+    ckpt = tmp_path / "image" / "checkpoints" / "last.ckpt"
+    model, info = load_model(ckpt)
+    assert info["kind"] == "image_field" and info["global_step"] == 2
+    with pytest.raises(ValueError, match="nerf-eval needs a model that renders a camera; this checkpoint's model, ImageFieldModule, has none"):
+        evaluate_checkpoint(ckpt, tmp_path / "eval")
+    with pytest.raises(ValueError, match="format=obj needs a density to mesh .*ImageFieldModule.*nothing nerf-export writes"):
+        export_model(model, "obj", tmp_path / "export", {})

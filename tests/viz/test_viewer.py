@@ -9,11 +9,13 @@ import math
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -130,6 +132,33 @@ def test_without_the_extra_the_commands_say_how_to_install_it(tmp_path):
         assert result.returncode == 2, result.stderr
         assert 'needs viser, an optional extra: pip install -e ".[viz]"' in result.stderr.strip().splitlines()[-1]
 
+
+
+@pytest.mark.skipif(importlib.util.find_spec("viser") is None, reason="viser (the viz extra) is not installed")
+def test_nerf_view_serves_its_page_until_ctrl_c(trained, scene_cache, tmp_path):
+    """The installed nerf-view on a trained checkpoint: it says where to look, that address serves the viewer's page,
+    and Ctrl-C stops it cleanly."""
+    port = _free_port()
+    env = dict(os.environ, NERF_LIGHTNING_CACHE=str(scene_cache), PYTHONUNBUFFERED="1")
+    log_path = tmp_path / "view.log"
+    command = [str(Path(sys.executable).parent / "nerf-view"), f"ckpt_path={trained['ckpt']}", f"port={port}", "device=cpu",
+               f"output_dir={tmp_path / 'renders'}"]
+    with open(log_path, "w") as log:
+        # a shell's background job (CI run with `&`) ignores SIGINT, and its children inherit that: give the command Ctrl-C back
+        process = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            _wait(lambda: "in a browser" in log_path.read_text() or process.poll() is not None, seconds=120, what="nerf-view to start")
+            assert process.poll() is None, log_path.read_text()[-3000:]
+            assert f"open http://127.0.0.1:{port} in a browser" in log_path.read_text()
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30) as response:
+                assert response.status == 200 and b"<html" in response.read().lower()
+            process.send_signal(signal.SIGINT)
+            assert process.wait(timeout=60) == 0, log_path.read_text()[-3000:]
+        finally:
+            if process.poll() is None:
+                process.kill()
+    assert "Traceback" not in log_path.read_text()
 
 # -- the scheduler alone ------------------------------------------------------------------------------------------
 
@@ -406,13 +435,18 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
     """The page connects; it shows the rendered field (its colours, not a blank canvas); a drag in the page moves the
     camera and changes the picture; the depth view differs from the rgb one; a training camera looked through shows its
     image; the Render button writes the path's GIF."""
-    from nerf_lightning.cli.view import view
+    from nerf_lightning.checkpoints import load_model, load_run_data
+    from nerf_lightning.viz.viewer import FieldViewer
+    from nerf_lightning.viz.viser_view import start_server
 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     port = _free_port()
-    cfg = compose_config([f"ckpt_path={trained['ckpt']}", f"port={port}", "device=cpu", f"output_dir={tmp_path / 'renders'}",
-                          "view.max_resolution=256"], config_name="view")
-    viewer = view(cfg)
+    # the viewer nerf-view starts, built as it builds it, to look inside (test_nerf_view_serves_its_page_until_ctrl_c
+    # runs the command itself)
+    server = start_server("127.0.0.1", port)
+    model, info = load_model(trained["ckpt"], "cpu")
+    datamodule = load_run_data(info["config"])
+    viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, tmp_path / "renders", max_resolution=256)
     loop = threading.Thread(target=viewer.serve_forever, daemon=True)
     loop.start()
     try:

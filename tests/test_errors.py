@@ -1,4 +1,5 @@
-"""Bad input and faults (docs/reliability.md): one clear line naming the file or key, exit 2, nothing half-written."""
+"""Bad input and faults (docs/reliability.md) reported as nerf_lightning.errors.report_errors reports them: one clear line
+naming the file or key, exit 2, nothing half-written."""
 
 from __future__ import annotations
 
@@ -12,9 +13,7 @@ import torch
 
 from nerf_lightning.config import compose_config
 from nerf_lightning.errors import report_errors
-from nerf_lightning.cli.evaluate import evaluate
 from nerf_lightning.io import write_png
-from nerf_lightning.cli.render import render
 from nerf_lightning.training import train
 from tests.conftest import ROOT
 
@@ -117,13 +116,6 @@ def test_a_bad_npz_names_the_key(tmp_path, capsys, problem):
                str(tmp_path / "scene.npz"), expected)
 
 
-def test_render_refuses_a_file_that_is_no_nerf_train_checkpoint(tmp_path, capsys):
-    torch.save({"state_dict": {}, "global_step": 3}, tmp_path / "other.ckpt")  # a Lightning checkpoint of another project
-    cfg = compose_config([f"ckpt_path={tmp_path / 'other.ckpt'}", f"output_dir={tmp_path / 'out'}"], config_name="render")
-    fails_with(capsys, "nerf-render", render, cfg, "other.ckpt", "is not a nerf-train checkpoint")
-    assert not (tmp_path / "out").exists()
-
-
 def test_an_output_folder_that_cannot_be_written_is_named(tmp_path, capsys):
     blocked = tmp_path / "a_file"
     blocked.write_text("a file where the run folder should go")
@@ -148,16 +140,6 @@ def test_resuming_from_a_missing_checkpoint_is_named(tmp_path, capsys):
                f"ckpt_path={tmp_path / 'gone.ckpt'} not found", "<run>/checkpoints/last.ckpt")
 
 
-def test_eval_on_a_missing_second_capture_is_named(tmp_path, capsys, make_config):
-    run = tmp_path / "trained"
-    train(make_config("experiment=fast", "model.field.encoding.n_levels=2", "model.field.encoding.log2_table_size=10", "model.field.encoding.max_resolution=32",
-                      "model.sampler.grid.resolution=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_every=2",
-                      "data.val_views=1", *QUIET, run_dir=run))
-    cfg = compose_config([f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", f"root={tmp_path / 'other.json'}",
-                          f"output_dir={tmp_path / 'eval'}"], config_name="eval")
-    fails_with(capsys, "nerf-eval", evaluate, cfg, str(tmp_path / "other.json"), "not found")
-
-
 def run_command(*args: str, cwd) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", *args], cwd=cwd, capture_output=True, text=True, timeout=300)
 
@@ -175,15 +157,3 @@ def test_an_unknown_group_option_lists_the_options(tmp_path):
     assert result.returncode != 0
     assert "Could not find 'model/nerf_wrong'" in result.stderr and "Available options in 'model'" in result.stderr and "ngp" in result.stderr
     assert "Traceback" not in result.stderr
-
-
-def test_atomic_writes_leave_no_temporary_file_and_the_usual_permissions(tmp_path):
-    import os
-
-    from nerf_lightning.io import write_atomic
-
-    path = write_atomic(tmp_path / "out" / "metrics.json", b"{}")
-    mask = os.umask(0)
-    os.umask(mask)
-    assert path.read_bytes() == b"{}" and (path.stat().st_mode & 0o777) == 0o666 & ~mask
-    assert [p.name for p in path.parent.iterdir()] == ["metrics.json"]

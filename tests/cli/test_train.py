@@ -1,66 +1,13 @@
-"""The command-line tools end to end, run as a user runs them: nerf-train, nerf-render, nerf-sweep-report."""
+"""nerf-train run as a user runs it: Ctrl-C, sweeps in parallel processes, the Slurm preset, an Optuna search."""
 
 import json
 
-import imageio.v3 as iio
-import numpy as np
 import yaml
 
 from tests.conftest import run_cli
 
 TINY = ["experiment=image", "data.downscale=4", "data.batch_size=1024", "trainer.max_steps=40", "data.val_steps=[20]",
         "trainer.enable_progress_bar=false"]
-
-
-def test_train_then_render_from_the_checkpoint(tmp_path):
-    run = tmp_path / "run"
-    run_cli("train", *TINY, f"hydra.run.dir={run}", cwd=tmp_path)
-    config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
-    assert config["model"]["field"]["num_frequencies"] == 10 and config["trainer"]["max_steps"] == 40
-
-    ckpt = run / "checkpoints" / "last.ckpt"
-    run_cli("render", f"ckpt_path={ckpt}", f"output_dir={tmp_path / 'r1'}", cwd=tmp_path)
-    run_cli("render", f"ckpt_path={ckpt}", "render.scale=2", f"output_dir={tmp_path / 'r2'}", cwd=tmp_path)
-    run_cli("render", f"ckpt_path={ckpt}", "render.scale=3", f"output_dir={tmp_path / 'r3'}", cwd=tmp_path)
-    same_size = iio.imread(tmp_path / "r1" / "rgb_scale1.png")
-    # the checkpoint holds the trained field: at scale 1 it renders exactly the last snapshot
-    assert np.array_equal(same_size, iio.imread(run / "snapshots" / "rgb_00_step000040.png"))
-    assert same_size.shape == (64, 96, 3)
-    assert iio.imread(tmp_path / "r2" / "rgb_scale2.png").shape == (128, 192, 3)
-    # at 3x, the centre of every third pixel (1, 4, 7, ...) is the centre of an original pixel
-    triple = iio.imread(tmp_path / "r3" / "rgb_scale3.png")
-    assert triple.shape == (192, 288, 3)
-    difference = np.abs(triple[1::3, 1::3].astype(int) - same_size.astype(int))
-    assert difference.max() <= 1  # equal up to float rounding of the positions
-    assert np.abs(triple[0::3, 0::3].astype(int) - same_size.astype(int)).max() > 1  # the others are new samples
-
-
-def test_render_defaults_to_the_runs_renders_folder(tmp_path):
-    run = tmp_path / "run"
-    run_cli("train", *TINY, "trainer.max_steps=5", "data.val_steps=[]", f"hydra.run.dir={run}", cwd=tmp_path)
-    run_cli("render", f"ckpt_path={run / 'checkpoints' / 'best.ckpt'}", cwd=tmp_path)
-    (written,) = list((run / "renders").glob("*/rgb_scale1.png"))
-    assert iio.imread(written).shape == (64, 96, 3)
-
-
-def test_multirun_sweep_and_its_report(tmp_path):
-    sweep = tmp_path / "sweep"
-    run_cli("train", "-m", *TINY, "model.field.num_frequencies=2,6", f"hydra.sweep.dir={sweep}", cwd=tmp_path)
-    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
-    assert jobs == ["0", "1"]
-    levels = [yaml.safe_load((sweep / job / ".hydra" / "config.yaml").read_text())["model"]["field"]["num_frequencies"] for job in jobs]
-    assert levels == [2, 6]
-
-    result = run_cli("sweep_report", str(sweep), cwd=tmp_path)
-    report = (sweep / "report.md").read_text()
-    assert report == result.stdout.rstrip("\n") + "\n"
-    rows = [line for line in report.splitlines() if line.startswith("| 0 ") or line.startswith("| 1 ")]
-    assert len(rows) == 2
-    for job, row in zip(jobs, rows):
-        psnr = json.loads((sweep / job / "metrics.json").read_text())["val/psnr"]
-        assert f"{psnr:.2f}" in row
-    assert "model.field.num_frequencies=2" in rows[0] and "model.field.num_frequencies=6" in rows[1]
-    assert (sweep / "psnr.png").stat().st_size > 1000
 
 
 def test_ctrl_c_keeps_the_steps_done_in_last_ckpt(tmp_path):

@@ -1,15 +1,14 @@
 """nerf-process-data: photos or a video to a posed capture with COLMAP in-process (pycolmap).
 
-Bad captures stop with one line and leave no transforms.json; the camera alignment recovers a known similarity;
-video frames are picked by sharpness and photos turned by their EXIF orientation; ten fox photos are posed end to end
-against the published poses (the fifty of them in the slow test).
+Bad captures stop with one line and leave no transforms.json; video frames are picked by sharpness and photos turned
+by their EXIF orientation; ten fox photos are posed end to end against the published poses (the fifty of them in the
+slow test; the camera alignment that compares them is tested in tests/geometry/test_alignment.py).
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
-import math
 import subprocess
 import sys
 import time
@@ -17,12 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from nerf_lightning.data.capture.images import write_capture_image
 from nerf_lightning.errors import MissingExtraError
-from nerf_lightning.geometry.alignment import camera_pose_errors, umeyama_similarity
 from tests.conftest import SHARED_DATA
 
 FOX = SHARED_DATA / "nerfstudio" / "fox"
@@ -140,54 +137,6 @@ def test_too_few_registered_name_the_images_left_out_and_what_to_change():
                                          r"matcher=exhaustive.*min_registered=0 to keep the 4"):
         check_registered(4, names[4:], 10, Path("video.mp4"), "sequential", 0.5)
     check_registered(4, names[4:], 10, Path("photos"), "exhaustive", 0.4)
-
-
-# --- the alignment of two camera sets
-
-
-def random_rotation(generator: torch.Generator) -> torch.Tensor:
-    q, r = torch.linalg.qr(torch.randn(3, 3, generator=generator, dtype=torch.float64))
-    q = q * torch.sign(torch.diagonal(r))
-    return q if torch.linalg.det(q) > 0 else -q
-
-
-def test_umeyama_recovers_a_known_similarity():
-    generator = torch.Generator().manual_seed(0)
-    source = torch.randn(20, 3, generator=generator, dtype=torch.float64)
-    rotation, scale, translation = random_rotation(generator), 2.7, torch.tensor([1.0, -4.0, 0.5], dtype=torch.float64)
-    target = scale * source @ rotation.T + translation
-    transform = umeyama_similarity(source, target)
-    assert torch.allclose(transform[:3, :3], scale * rotation, atol=1e-10)
-    assert torch.allclose(transform[:3, 3], translation, atol=1e-10)
-    # a mirrored target is fitted by a rotation, never a reflection
-    mirrored = umeyama_similarity(source, source * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
-    assert torch.linalg.det(mirrored[:3, :3]) > 0
-    with pytest.raises(ValueError, match="at least 3 points"):
-        umeyama_similarity(source[:2], target[:2])
-
-
-def test_camera_errors_after_alignment_are_those_put_in():
-    generator = torch.Generator().manual_seed(1)
-    count = 12
-    reference = torch.eye(4, dtype=torch.float64).repeat(count, 1, 1)
-    reference[:, :3, :3] = torch.stack([random_rotation(generator) for _ in range(count)])
-    reference[:, :3, 3] = 3.0 * torch.randn(count, 3, generator=generator, dtype=torch.float64)
-    # the same cameras in another similarity frame: scale 0.4, a rotation, a shift
-    rotation = random_rotation(generator)
-    recovered = reference.clone()
-    recovered[:, :3, :3] = rotation @ reference[:, :3, :3]
-    recovered[:, :3, 3] = 0.4 * reference[:, :3, 3] @ rotation.T + torch.tensor([5.0, 0.0, -2.0], dtype=torch.float64)
-    errors = camera_pose_errors(recovered, reference)
-    assert errors["position_error"].max() < 1e-9 and errors["rotation_error"].max() < 1e-5
-    # one camera turned by 2 degrees about its own axis: only its rotation error moves, by 2 degrees
-    angle = math.radians(2.0)
-    turn = torch.tensor([[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    recovered[3, :3, :3] = recovered[3, :3, :3] @ turn
-    errors = camera_pose_errors(recovered, reference)
-    assert errors["rotation_error"][3] == pytest.approx(2.0, abs=1e-6)
-    assert errors["rotation_error"][torch.arange(count) != 3].max() < 1e-5
-    spread = (reference[:, :3, 3] - reference[:, :3, 3].mean(0)).norm(dim=-1).pow(2).mean().sqrt()
-    assert float(errors["spread"]) == pytest.approx(float(spread))
 
 
 # --- photos and video frames made ready

@@ -1,4 +1,4 @@
-"""Determinism, kill -9 then resume, and Lightning DDP on two CPU processes."""
+"""nerf_lightning.training: determinism, kill -9 then resume, Lightning DDP on two CPU processes, a quiet log."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ import torch
 
 from nerf_lightning.checkpoints import load_model
 from nerf_lightning.config import compose_config
-from nerf_lightning.data.batches import SegmentedBatches
 from nerf_lightning.training import train
+from tests.conftest import run_cli
 
 # experiment=fast, small enough for a test: 120 steps of 256 rays, last.ckpt every 20 steps (not by time); on the CPU,
 # whatever the machine has: these runs are compared bit for bit, which GPU atomics (index_add) do not promise
@@ -23,6 +23,9 @@ SMALL_FAST = ["experiment=fast", "trainer.accelerator=cpu", "callbacks.last_chec
               "model.sampler.grid.resolution=16", "data.batch_size=256", "data.val_views=1", "data.val_every=120",
               "trainer.max_steps=120", "callbacks.last_checkpoint.every_n_train_steps=20",
               "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
+
+TINY_IMAGE_RUN = ["experiment=image", "data.downscale=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
+                  "trainer.enable_progress_bar=false"]
 
 
 @pytest.fixture
@@ -82,14 +85,6 @@ def test_kill_9_mid_run_then_resume_ends_where_the_uninterrupted_run_does(cached
     assert float((grids[0] != grids[1]).float().mean()) < 0.02
 
 
-def test_each_rank_draws_its_own_rays():
-    def draw(generator):
-        return torch.randint(0, 1_000_000, (8,), generator=generator)
-
-    ranks = [next(iter(SegmentedBatches(draw, lambda: 0, lambda step: 1, seed=0, rank=lambda r=r: r))) for r in (0, 1)]
-    assert not torch.equal(ranks[0], ranks[1])
-
-
 def test_ddp_trains_on_two_cpu_processes_and_its_checkpoint_loads(cached_scene, tmp_path):
     run = tmp_path / "ddp"
     result = subprocess.run(
@@ -104,3 +99,12 @@ def test_ddp_trains_on_two_cpu_processes_and_its_checkpoint_loads(cached_scene, 
     assert info["global_step"] == 6 and info["config"]["trainer"]["strategy"] == "ddp"
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["step"] == 6 and "val/psnr" in metrics
+
+
+def test_nerf_train_prints_no_lightning_cloud_adverts(tmp_path):
+    """Lightning logs a litlogger tip on every run, and a litmodels one when it adds its own ModelCheckpoint
+    (callbacks=none); nerf_lightning.training filters both out of its log, nothing else."""
+    result = run_cli("train", *TINY_IMAGE_RUN, "callbacks=none", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
+    output = result.stdout + result.stderr
+    assert "GPU available" in output  # Lightning's other info lines still show
+    assert "litmodels" not in output and "litlogger" not in output and "💡" not in output

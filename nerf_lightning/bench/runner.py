@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -97,6 +98,8 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[
     root = data_root(row, data_dir)
     run_dir = (work_dir / suite.name / row.slug).resolve()
     arguments = train_arguments(row, run_dir, root.resolve() if root is not None else None)
+    if run_dir.exists():  # an earlier measurement of the row: its marks and checkpoints must not be taken for this one's
+        shutil.rmtree(run_dir)
     started = time.perf_counter()
     print(f"[{row.id}] training {row.minutes:g} min: {run_dir / 'train.log'}", flush=True)
     run_logged("nerf-train", arguments, run_dir / "train.log")

@@ -25,6 +25,13 @@ PROVENANCE = ("machine", "versions", "revision", "date", "command")
 
 # -- the timing helper ---------------------------------------------------------------------------------------------
 
+
+@pytest.fixture(scope="module")
+def small_scene_cache(tmp_path_factory):
+    """A scene cache of this module's own for its 16-pixel procedural scenes: the session's ``scene_cache`` holds the
+    one default-sized scene that other tests find by its name."""
+    return tmp_path_factory.mktemp("small_scene_cache")
+
 def test_summarize_gives_the_median_and_the_spread():
     summary = micro.summarize([4.0, 1.0, 3.0, 2.0, 5.0])
     assert summary["median_s"] == 3.0 and summary["mean_s"] == 3.0 and (summary["min_s"], summary["max_s"]) == (1.0, 5.0)
@@ -129,10 +136,10 @@ def assert_provenance_and_timings(result: dict, out: Path, *timings: dict) -> No
             assert math.isfinite(timing[key]) and timing[key] > 0, (key, timing)
 
 
-def test_hash_encoding_benchmark(tmp_path, scene_cache):
+def test_hash_encoding_benchmark(tmp_path, small_scene_cache):
     out = tmp_path / "hash.json"
     result = run_script("bench_hash_encoding.py", "--preset", "fast", "--points", "2048", "--repeats", "2", "--warmup", "1",
-                        "--device", "cpu", "--out", str(out), "--", "model.field.encoding.compile_evaluation=false", cache=scene_cache)
+                        "--device", "cpu", "--out", str(out), "--", "model.field.encoding.compile_evaluation=false", cache=small_scene_cache)
     assert_provenance_and_timings(result, out, result["forward"], result["forward_backward"])
     assert result["settings"]["n_levels"] == 8 and result["points"] == 2048 and result["forward_compiled"] is False
     reference = result["reference"]
@@ -140,11 +147,11 @@ def test_hash_encoding_benchmark(tmp_path, scene_cache):
     assert reference["max_abs_difference"] < 1e-5
 
 
-def test_train_step_benchmark_runs_the_library_training_step(tmp_path, scene_cache):
+def test_train_step_benchmark_runs_the_library_training_step(tmp_path, small_scene_cache):
     out = tmp_path / "train_step.json"
     result = run_script("bench_train_step.py", "--preset", "fast", "--steps", "3", "--warmup", "1", "--device", "cpu", "--out", str(out),
                         "--", "data.scene.size=16", "data.batch_size=64", "model.sampler.grid.resolution=32",
-                        "model.field.encoding.compile_evaluation=false", cache=scene_cache)
+                        "model.field.encoding.compile_evaluation=false", cache=small_scene_cache)
     assert_provenance_and_timings(result, out, result["step"], result["loop"])
     assert result["global_step"] == 4 and result["steps"] == 3 and result["step"]["repeats"] == 3
     assert result["batch_size"] == 64 and result["rays_per_second"] > 0 and result["device"] == "cpu"
@@ -152,36 +159,36 @@ def test_train_step_benchmark_runs_the_library_training_step(tmp_path, scene_cac
     assert result["callbacks"] == ["step_timer"]  # no checkpoints, snapshots or validation in the timed steps
 
 
-def test_frame_benchmark_renders_a_held_out_view(tmp_path, scene_cache):
+def test_frame_benchmark_renders_a_held_out_view(tmp_path, small_scene_cache):
     out = tmp_path / "frame.json"
     result = run_script("bench_frame.py", "--preset", "nerf_procedural", "--scale", "0.5", "--repeats", "2", "--warmup", "1",
-                        "--device", "cpu", "--out", str(out), "--", "data.scene.size=16", "model.sampler.n_samples=8", cache=scene_cache)
+                        "--device", "cpu", "--out", str(out), "--", "data.scene.size=16", "model.sampler.n_samples=8", cache=small_scene_cache)
     assert_provenance_and_timings(result, out, result["frame"])
     assert (result["height"], result["width"]) == (8, 8) and result["trained"] is False and result["rays_per_second"] > 0
 
 
-def test_frame_benchmark_renders_a_checkpoint(tmp_path, scene_cache, make_config, monkeypatch):
-    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+def test_frame_benchmark_renders_a_checkpoint(tmp_path, small_scene_cache, make_config, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(small_scene_cache))
     train(make_config("experiment=nerf_procedural", "data.scene.size=16", "trainer.max_steps=2", "data.val_every=2", "data.val_views=1",
                       "data.batch_size=64", "model.sampler.n_samples=8", "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"))
     out = tmp_path / "frame.json"
     result = run_script("bench_frame.py", "--ckpt", str(tmp_path / "run" / "checkpoints" / "last.ckpt"), "--repeats", "2",
-                        "--device", "cpu", "--out", str(out), cache=scene_cache)
+                        "--device", "cpu", "--out", str(out), cache=small_scene_cache)
     assert_provenance_and_timings(result, out, result["frame"])
     assert result["global_step"] == 2 and (result["height"], result["width"]) == (16, 16)
 
 
-def test_frame_benchmark_skips_a_missing_checkpoint(tmp_path, scene_cache):
-    result = run_script("bench_frame.py", "--ckpt", str(tmp_path / "absent.ckpt"), cache=scene_cache)
+def test_frame_benchmark_skips_a_missing_checkpoint(tmp_path, small_scene_cache):
+    result = run_script("bench_frame.py", "--ckpt", str(tmp_path / "absent.ckpt"), cache=small_scene_cache)
     assert result == {"skipped": f"checkpoint not found: {tmp_path / 'absent.ckpt'}"}
 
 
-def test_process_data_benchmark_poses_a_few_photos_or_skips(tmp_path, scene_cache):
-    missing = run_script("bench_process_data.py", "--root", str(tmp_path / "absent"), cache=scene_cache)
+def test_process_data_benchmark_poses_a_few_photos_or_skips(tmp_path, small_scene_cache):
+    missing = run_script("bench_process_data.py", "--root", str(tmp_path / "absent"), cache=small_scene_cache)
     assert list(missing) == ["skipped"]
     out = tmp_path / "process_data.json"
     result = run_script("bench_process_data.py", "--photos", "5", "--max-size", "400", "--mapper", "incremental", "--out", str(out),
-                        cache=scene_cache)
+                        cache=small_scene_cache)
     if "skipped" in result:  # no fox in ../shared/data, or no pycolmap
         pytest.skip(result["skipped"])
     assert all(key in result for key in PROVENANCE) and json.loads(out.read_text()) == result

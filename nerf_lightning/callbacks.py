@@ -168,8 +168,8 @@ class Snapshots(TimedCallback):
 
 class StepOrTimeCheckpoint(ModelCheckpoint):
     """Lightning's ModelCheckpoint saving every ``every_n_train_steps`` steps *or* every ``train_time_interval``
-    seconds of training, whichever comes first (Lightning takes one or the other): a CPU does 5 to 20 steps a second
-    and a GPU hundreds, so a time interval bounds the work a crash loses on both, and the step count keeps
+    seconds of training, whichever comes first (Lightning takes one or the other): a GPU makes many times a CPU's
+    steps a second, so a time interval bounds the work a crash loses on both, and the step count keeps
     checkpoints at known steps where a test or a sweep needs them. Either may be None (off)."""
 
     def __init__(self, *args: Any, every_n_train_steps: int | None = None, train_time_interval: float | None = None, **kwargs: Any) -> None:

@@ -18,10 +18,10 @@ class AppearanceEmbedding(PerViewTable):
 
     The mean row is what every held-out view is rendered with, so it has to be a vector the colour MLP knows.
     nerfstudio draws the rows from N(0, 1) and leaves them free: the mean of such rows lies far inside the cloud
-    of rows (fox's 43 rows of 32 after training: a row's norm about 5, the mean's 0.8), where the MLP was never
-    trained, and the held-out PSNR falls while the training PSNR rises. Rows that start at zero and pay ``penalty`` times their mean squared norm
-    (:meth:`penalties`, NeRF-W's and Zip-NeRF's small-embedding prior) stay near the mean; on fox that is
-    +1.1 dB held out after 10 minutes on 2 cores (docs/benchmarks.md).
+    of rows (a trained row is several times longer than the mean), where the MLP was never trained, and the
+    held-out PSNR falls while the training PSNR rises. Rows that start at zero and pay ``penalty`` times their mean
+    squared norm (:meth:`penalties`, NeRF-W's and Zip-NeRF's small-embedding prior) stay near the mean, which lifts
+    the held-out views (docs/benchmarks.md, "Appearance rows from zero with a penalty").
 
     Args:
         dim: the width of a row (nerfacto: 32).

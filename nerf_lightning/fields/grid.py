@@ -92,7 +92,7 @@ class BakedDensity(nn.Module):
     the box ``aabb``, trilinearly interpolated and exponentiated, 0 outside the box. What :meth:`DensityField.bake`
     makes of a proposal network for evaluation: one interpolation a point instead of a hash encoding and an MLP, at
     the price of the network's detail between the vertices. The interpolation is PyTorch's ``grid_sample`` (one
-    vectorised kernel; on a CPU faster than the same interpolation as a one-level hash grid, docs/benchmarks.md),
+    vectorised kernel; on a CPU faster than the same interpolation as a one-level hash grid),
     except on an Apple GPU before torch 2.9, which has no 3D ``grid_sample``: there a one-level, one-feature
     :class:`~nerf_lightning.fields.hash_grid.HashGridEncoding` whose table holds the vertices densely interpolates
     them (the same values).

@@ -132,7 +132,7 @@ class RadianceFieldModule(FieldModule):
             if abort is not None and abort():
                 return None
             out = self.render(origins, directions)
-            for key in keys:  # only these: a chunk's samples and weights go with the next chunk (a fern frame's were 1 GB)
+            for key in keys:  # only these: a chunk's samples and weights go with the next chunk (a whole frame's would not fit)
                 parts[key].append(out[key])
         return {key: torch.cat(parts[key]) for key in keys}
 

@@ -15,7 +15,7 @@ from nerf_lightning.metrics import chamfer_distance
 from nerf_lightning.training import train
 from tests.conftest import run_cli
 
-# Measured with these settings (seed 0, docs/benchmarks.md): val PSNR 25.5 dB, SSIM 0.93, depth error 0.058,
+# Measured with these settings (seed 0, docs/history/benchmarks-diary.md): val PSNR 25.5 dB, SSIM 0.93, depth error 0.058,
 # the mesh's Chamfer distance to the true surfaces 0.021 (one grid step of the 128^3 export is 0.024).
 # The bars keep a margin for another machine's arithmetic: 23 dB (the course's bar), depth error 0.1
 # (the best constant guess errs by 0.36 on these views), Chamfer 0.05 (two grid steps; a sphere fitted

@@ -12,7 +12,7 @@ explains the most geometrically verified matches. A model can reproject its own 
 wrong: on fox's 50 photos (two arcs of a walk round a mounted fox before a repeating rose wallpaper, the photos between
 them missing) either mapper, depending on the matches' RANSAC seed, joins the second arc to the first through
 wallpaper matches one repeat off, every image registered and the arcs misplaced; such a model contradicts the
-fox's own matches between the arcs, which the right one explains (docs/benchmarks.md).
+fox's own matches between the arcs, which the right one explains (docs/benchmarks.md, "Both COLMAP mappers").
 
 Written against pycolmap 4.2 (``FeatureExtractionOptions``, ``Image.cam_from_world()``, ``match_image_pairs``,
 ``global_mapping``).

@@ -91,7 +91,7 @@ class ProposalSampler(RaySampler):
     Evaluation (no perturbation, no gradients): with ``bake_resolution`` set, each proposal network is first read off
     a grid of that many cells a side (:meth:`DensityField.bake <nerf_lightning.fields.grid.DensityField.bake>`, kept
     until its weights change), and the proposal levels interpolate that grid instead of running the network: most
-    of an evaluation frame's points are proposal points, so frames render about twice as fast on a CPU.
+    of an evaluation frame's points are proposal points, so a frame costs little more than the field's own samples.
 
     Args:
         proposal_fields: one density network a level (nerfacto: two).

@@ -94,7 +94,12 @@ def test_npz_bad_files_name_the_key(procedural_scene, tmp_path):
 
 
 def copy_procedural(scene_cache, tmp_path):
-    (source,) = [p for p in scene_cache.iterdir() if p.name.startswith("procedural_")]
+    """A copy of the default procedural scene (100 views of 100 px) of the session's cache, as a Blender folder; other
+    tests cache smaller ones beside it."""
+    from nerf_lightning.data.formats.procedural import load_procedural
+
+    load_procedural(cache_dir=scene_cache)  # made once a session
+    (source,) = [p for p in scene_cache.iterdir() if p.name.startswith("procedural_") and p.name.endswith("_100views_100px")]
     return shutil.copytree(source, tmp_path / "scene")
 
 

@@ -43,6 +43,8 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
     cfg = compose_config([f"experiment={experiment}", "paths.output_dir=/tmp/unused"])
     scene_target = cfg.data.scene._target_ if "scene" in cfg.data else ""
     overrides = [f"experiment={experiment}", *TINY]
+    if cfg.data._target_.endswith("ViewDataModule"):  # a view a step (no batch size); a few Gaussians
+        overrides = [o for o in overrides if not o.startswith("data.batch_size")] + ["model.random_count=500"]
     if cfg.data._target_.endswith("PixelDataModule"):
         return overrides + [f"data.path={tiny_data['image']}", "data.val_steps=[1,2]"]
     overrides += [*(["data.scene.max_views=4"] if "max_views" in cfg.data.scene else []), "data.val_every=2", "data.val_views=1",
@@ -56,11 +58,12 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
         overrides.append("data.scene.downscale=1")
     if scene_target.endswith("load_procedural"):
         overrides.append("data.scene.size=16")
-    if "grid" in cfg.model.sampler:  # an occupancy grid of 32^3: the GPU presets' 128^3 takes 20 s a refresh on a CPU
+    sampler = cfg.model.get("sampler") or {}
+    if "grid" in sampler:  # an occupancy grid of 32^3: the GPU presets' 128^3 takes 20 s a refresh on a CPU
         overrides.append("model.sampler.grid.resolution=32")
     if cfg.data.get("ndc"):  # 8 views from around the procedural scene, not a forward-facing capture: its rays reach |x| = 34 in NDC
         overrides.append("model.field.aabb=[-40.0,-40.0,-1.0,40.0,40.0,1.0]")
-    if cfg.model.sampler.get("bake_resolution"):  # proposal networks baked for validation at 16^3, not 128^3
+    if sampler.get("bake_resolution"):  # proposal networks baked for validation at 16^3, not 128^3
         overrides.append("model.sampler.bake_resolution=16")
     return overrides
 

@@ -2,5 +2,6 @@
 
 from nerf_lightning.models.image_field import ImageFieldModule
 from nerf_lightning.models.radiance_field import RadianceFieldModule
+from nerf_lightning.models.splat import SplatModule
 
-__all__ = ["ImageFieldModule", "RadianceFieldModule"]
+__all__ = ["ImageFieldModule", "RadianceFieldModule", "SplatModule"]

@@ -97,6 +97,19 @@ class ShowsOverlays(Protocol):
 
 
 @runtime_checkable
+class HasGaussians(Protocol):
+    """A model made of 3D Gaussians, written as a splat PLY (:mod:`nerf_lightning.splats.ply`).
+
+    ``gaussian_parameters()`` -> means (N, 3) in the scene's world, quats (N, 4) w x y z, log_scales (N, 3),
+    opacity_logits (N,), sh0 (N, 1, 3), shN (N, K - 1, 3) spherical-harmonic colours (3DGS's constants).
+    """
+
+    space: SceneSpace
+
+    def gaussian_parameters(self) -> dict[str, torch.Tensor]: ...
+
+
+@runtime_checkable
 class RendersImage(Protocol):
     """An image field: ``render_image(scale)`` -> (round(s H), round(s W), 3) colours in [0, 1] of the fitted image."""
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from nerf_lightning.models.contract import HasDensity
+from nerf_lightning.models.contract import HasDensity, HasGaussians
 from nerf_lightning.outputs.mesh import FORMATS as MESH_FORMATS
 from nerf_lightning.outputs.mesh import mesh_model, write_mesh
 
@@ -43,24 +43,38 @@ def _mesh_writer(file_type: str) -> Callable[[Any, Mapping[str, Any], Path], Pat
     return write
 
 
-EXPORT_FORMATS: dict[str, ExportFormat] = {
-    file_type: ExportFormat(HasDensity, "a density to mesh (marching cubes)", _mesh_writer(file_type)) for file_type in MESH_FORMATS
+def _write_splats(model: HasGaussians, options: Mapping[str, Any], output_dir: Path) -> Path:
+    from nerf_lightning.splats.ply import write_splat_ply
+
+    parameters = model.gaussian_parameters()
+    path = write_splat_ply(output_dir / "splats.ply", **parameters)
+    log.info("wrote %s: %d Gaussians (the 3DGS layout: SuperSplat and the web splat viewers open it), in the scene's coordinates",
+             path, len(parameters["means"]))
+    return path
+
+
+# a name can have several exports, by what the model has: the first the model can do is written
+EXPORT_FORMATS: dict[str, tuple[ExportFormat, ...]] = {
+    file_type: (ExportFormat(HasDensity, "a density to mesh (marching cubes)", _mesh_writer(file_type)),) for file_type in MESH_FORMATS
 }
+EXPORT_FORMATS["ply"] = (ExportFormat(HasGaussians, "Gaussians (a splat PLY)", _write_splats), *EXPORT_FORMATS["ply"])
 
 
 def formats_of(model: Any) -> list[str]:
     """The formats ``model`` can be exported in."""
-    return [name for name, entry in EXPORT_FORMATS.items() if isinstance(model, entry.capability)]
+    return [name for name, entries in EXPORT_FORMATS.items() if any(isinstance(model, entry.capability) for entry in entries)]
 
 
 def export_model(model: Any, file_format: str, output_dir: str | Path, options: Mapping[str, Any]) -> Path:
     """Write ``model`` in ``file_format`` into ``output_dir``; ValueError in one line for an unknown format or one
     the model cannot be exported in (naming those it can)."""
-    entry = EXPORT_FORMATS.get(str(file_format))
-    if entry is None:
+    entries = EXPORT_FORMATS.get(str(file_format))
+    if entries is None:
         raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got '{file_format}'")
-    if not isinstance(model, entry.capability):
+    entry = next((entry for entry in entries if isinstance(model, entry.capability)), None)
+    if entry is None:
         have = formats_of(model)
         offer = f"it exports {', '.join(have)}" if have else "it has nothing nerf-export writes"
-        raise ValueError(f"format={file_format} needs {entry.needs}; this checkpoint's model, {type(model).__name__}, has none: {offer}")
+        needs = " or ".join(entry.needs for entry in entries)
+        raise ValueError(f"format={file_format} needs {needs}; this checkpoint's model, {type(model).__name__}, has none: {offer}")
     return entry.write(model, options, Path(output_dir))

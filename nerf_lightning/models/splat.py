@@ -1,0 +1,207 @@
+"""Fitting 3D Gaussians to posed images (3D Gaussian splatting, Kerbl et al. 2023), in plain PyTorch.
+
+Each step draws one training view (or a patch: ``data=views``), projects the Gaussians into its camera
+(:mod:`~nerf_lightning.splats.projection`), rasterises them (:mod:`~nerf_lightning.splats.rasterize`) and takes
+0.8 L1 + 0.2 (1 - SSIM) against the photo; a strategy (:mod:`~nerf_lightning.splats.strategy`) grows and prunes
+the Gaussians from the screen-space gradients.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import kornia
+import torch
+from torchmetrics import MeanMetric
+
+from nerf_lightning.geometry.space import SceneSpace
+from nerf_lightning.metrics import image_metrics, mse_to_psnr
+from nerf_lightning.models.base import FieldModule
+from nerf_lightning.splats.gaussians import Gaussians
+from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
+from nerf_lightning.splats.rasterize import MAX_PAIRS, rasterize
+from nerf_lightning.splats.sh import spherical_harmonics
+from nerf_lightning.splats.strategy import Strategy
+
+log = logging.getLogger(__name__)
+
+
+class SplatModule(FieldModule):
+    """Trains Gaussian splats on whole training views or patches (``data=views``).
+
+    Under the model contract it renders a camera (:meth:`render_view`); it has no density field to mesh.
+    Logs ``train/loss``, ``train/psnr``, ``train/gaussians`` every step and ``val/psnr``, ``val/ssim`` (and
+    ``val/depth_error`` where the scene has true depth) over whole held-out views.
+
+    Args:
+        gaussians: the :class:`~nerf_lightning.splats.gaussians.Gaussians` (empty until fitting starts: they start
+            from the capture's sparse points, else ``random_count`` points uniform in a cube of half-side
+            ``random_extent`` about the origin, random colours).
+        strategy: densification (:class:`~nerf_lightning.splats.strategy.DefaultStrategy`), or None.
+        optimizer: builds the optimiser (Adam, eps 1e-15) from the groups (a Hydra ``_partial_``).
+        learning_rates: each parameter's learning rate (gsplat's): ``means`` (times the scene scale, decaying to
+            ``means_final_ratio`` of it over ``steps``), ``log_scales``, ``quats``, ``opacity_logits``, ``sh0``, ``shN``.
+        steps: the steps the means' learning rate decays over (the run's ``trainer.max_steps``).
+        sh_degree_interval: the colours' spherical-harmonic degree goes up by one every so many steps, to the
+            Gaussians' ``sh_degree``.
+        ssim_weight: the loss is (1 - w) L1 + w (1 - SSIM).
+        antialiased: Mip-Splatting's opacity compensation of the low-pass filter.
+        max_pairs: (Gaussian, pixel) pairs drawn at once (:mod:`~nerf_lightning.splats.rasterize`): the memory a
+            view takes, about 100 bytes a pair with gradients.
+        random_count, random_extent: the random start of a capture without sparse points.
+    """
+
+    kind = "splats"
+
+    def __init__(self, gaussians: Gaussians, optimizer: Callable[..., torch.optim.Optimizer], learning_rates: dict[str, float],
+                 strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
+                 means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
+                 max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_extent: float = 1.3) -> None:
+        super().__init__(optimizer, scheduler)
+        missing = {"means", "log_scales", "quats", "opacity_logits", "sh0", "shN"} - set(learning_rates)
+        if missing:
+            raise ValueError(f"model.learning_rates needs a rate for {', '.join(sorted(missing))}")
+        self.gaussians, self.strategy = gaussians, strategy
+        self.learning_rates = dict(learning_rates)
+        self.steps, self.means_final_ratio, self.sh_degree_interval = steps, means_final_ratio, sh_degree_interval
+        self.ssim_weight, self.antialiased, self.max_pairs = ssim_weight, antialiased, max_pairs
+        self.random_count, self.random_extent = random_count, random_extent
+        self.space = SceneSpace()
+        self.register_buffer("scene_scale", torch.tensor(1.0))
+        self.val_depth_error = MeanMetric(nan_strategy="ignore")
+        self._drawn: tuple[Projection, int, int] | None = None
+
+    # -- fitting starts: the scene's space, its scale and the Gaussians' start --------------------------------
+
+    def setup(self, stage: str) -> None:
+        datamodule = getattr(getattr(self, "trainer", None), "datamodule", None)
+        if stage != "fit" or datamodule is None:
+            return
+        if getattr(datamodule, "batches", "rays") != "views":
+            raise ValueError("Gaussian splats train on whole views or patches: use data=views (with data/scene=<format>), "
+                             f"not data={getattr(datamodule, 'batches', '?')}")
+        space = datamodule.space  # the DataModule is set up before the model
+        if space.ndc is not None or space.contraction is not None:
+            raise ValueError("Gaussian splats live in the scene's own world: data.ndc and data.contract must be false for model=splat")
+        self.use_space(space)
+        centres = datamodule.scene.train.c2w[:, :3, 3]
+        self.scene_scale.fill_(1.1 * float((centres - centres.mean(dim=0)).norm(dim=-1).max()))
+        if self.strategy is not None:
+            self.strategy.scene_scale = float(self.scene_scale)
+        if len(self.gaussians) == 0 and not getattr(self.trainer, "ckpt_path", None):  # a resumed run's come from its checkpoint
+            self.start_gaussians(datamodule.scene)
+
+    def use_space(self, space: SceneSpace) -> None:
+        self.space = space.to(self.device)
+
+    def start_gaussians(self, scene: Any) -> None:
+        generator = torch.Generator().manual_seed(0)
+        points = getattr(scene, "points", None)
+        if points is not None and len(points) > 0:
+            log.info("Gaussians start from the capture's %d sparse points", len(points))
+            self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
+            return
+        log.info("the capture has no sparse points: %d Gaussians start uniform in [-%g, %g]^3 with random colours",
+                 self.random_count, self.random_extent, self.random_extent)
+        positions = (torch.rand(self.random_count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
+        self.gaussians.initialise(positions, torch.rand(self.random_count, 3, generator=generator), generator)
+
+    def parameter_groups(self) -> list[dict[str, Any]]:
+        """One group a parameter at its own learning rate; the means' scaled by the scene and decaying exponentially."""
+        rates, g = self.learning_rates, self.gaussians
+        decay = self.means_final_ratio ** (1.0 / max(self.steps, 1))
+        return [
+            {"name": "means", "params": [g.means], "lr": rates["means"] * float(self.scene_scale), "schedule": lambda step: decay**step},
+            *({"name": name, "params": [getattr(g, name)], "lr": rates[name]} for name in ("log_scales", "quats", "opacity_logits", "sh0", "shN")),
+        ]
+
+    # -- drawing a camera ------------------------------------------------------------------------------------
+
+    def sh_degree(self) -> int:
+        """The colours' degree now: one more every ``sh_degree_interval`` steps of training, all of it otherwise."""
+        if not self.training:
+            return self.gaussians.sh_degree
+        return min(self.global_step // max(self.sh_degree_interval, 1), self.gaussians.sh_degree)
+
+    def draw(self, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
+             background: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], Projection]:
+        """K (3, 3), OpenCV c2w (4, 4) -> rgb (H, W, 3), depth (H, W) (distance along the pixels' unit rays, as the
+        NeRF renderers measure it), accumulation (H, W), and the :class:`Projection` (for the strategy)."""
+        g = self.gaussians
+        K, c2w = K.to(self.device, torch.float32), c2w.to(self.device, torch.float32)
+        projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
+        directions = g.means[projection.ids] - c2w[:3, 3]
+        colours = spherical_harmonics(self.sh_degree(), g.coefficients[projection.ids], directions)
+        background = self.space.background if background is None else background
+        out = rasterize(projection, colours, height, width, background.to(colours), self.max_pairs)
+        out["depth"] = out["depth"] * pixel_ray_lengths(K, height, width)
+        return out, projection
+
+    @torch.no_grad()
+    def render_view(self, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
+                    abort: Callable[[], bool] | None = None) -> dict[str, torch.Tensor] | None:
+        """One pinhole view (the model contract): rgb (H, W, 3), depth (H, W), accumulation (H, W) on the model's device."""
+        if abort is not None and abort():
+            return None
+        return self.draw(K, c2w, height, width)[0]
+
+    def gaussian_parameters(self) -> dict[str, torch.Tensor]:
+        """The Gaussians as 3DGS stores them (the contract's :class:`~nerf_lightning.models.contract.HasGaussians`):
+        means (N, 3) in the scene's world, quats, log_scales, opacity_logits, sh0 (N, 1, 3), shN (N, K - 1, 3)."""
+        g = self.gaussians
+        return {name: getattr(g, name).detach() for name in ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")}
+
+    # -- training and validation ----------------------------------------------------------------------------------
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+        image = batch["image"]
+        height, width = image.shape[:2]
+        out, projection = self.draw(batch["K"], batch["c2w"], height, width)
+        if projection.means2d.requires_grad:
+            projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
+        self._drawn = (projection, width, height)
+        rgb = out["rgb"]
+        l1 = (rgb - image).abs().mean()
+        ssim = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11).mean()
+        loss = (1.0 - self.ssim_weight) * l1 + self.ssim_weight * (1.0 - ssim)
+        if not loss.requires_grad:  # the view saw no Gaussian: nothing to learn, but the step goes on
+            loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
+        self.log("train/loss", loss, on_step=True, on_epoch=False)
+        self.log("train/psnr", mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)), on_step=True, prog_bar=True)
+        self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
+        return loss
+
+    def on_after_backward(self) -> None:
+        if self.strategy is not None and self._drawn is not None:
+            projection, width, height = self._drawn
+            self.strategy.after_backward(self.gaussians, projection, width, height)
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        self._drawn = None
+        if self.strategy is not None:
+            self.strategy.after_step(self.gaussians, self.global_step, self.replace_parameter)
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
+        height, width = batch["height"], batch["width"]
+        out = self.render_view(batch["K"], batch["c2w"], height, width)
+        target = batch["rgb"].reshape(height, width, 3)
+        true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
+        metrics = image_metrics(out["rgb"], target, out["depth"], true_depth)
+        self.log("val/psnr", metrics["psnr"], prog_bar=True, batch_size=1, sync_dist=True)
+        self.log("val/ssim", metrics["ssim"], batch_size=1, sync_dist=True)
+        if "depth_error" in metrics:
+            self.val_depth_error.update(metrics["depth_error"])
+            self.log("val/depth_error", self.val_depth_error, batch_size=1)
+        picture = self.space.depth_picture(out["depth"], out["accumulation"])
+        return {"images": {"rgb": out["rgb"], "depth": picture, "target": target}}
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_save_checkpoint(checkpoint)
+        checkpoint["scene_space"] = self.space.state()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
+        if checkpoint.get("scene_space"):
+            self.space = SceneSpace.from_state(checkpoint["scene_space"]).to(self.device)

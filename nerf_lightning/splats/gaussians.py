@@ -1,0 +1,102 @@
+"""The Gaussians a splat model learns, as 3DGS stores them: means, unit quaternions (w, x, y, z), log scales, opacity
+logits and spherical-harmonic colours (``sh0``: degree 0; ``shN``: the higher bands up to ``sh_degree``).
+
+Every parameter changes size in training (densification): they are the module's ``variable_size_parameters``, so a
+checkpoint loads at the size it was saved with, and a strategy edits them only through :meth:`Gaussians.edit`,
+which keeps the optimiser's state in step (:func:`~nerf_lightning.models.parameters.replace_parameter`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import torch
+from torch import nn
+
+from nerf_lightning.splats.projection import inverse_sigmoid
+from nerf_lightning.splats.sh import coefficients_for, rgb_to_sh
+
+log = logging.getLogger(__name__)
+
+PARAMETERS = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
+
+
+class Gaussians(nn.Module):
+    """N Gaussians (N = 0 until :meth:`initialise`): ``means`` (N, 3), ``quats`` (N, 4), ``log_scales`` (N, 3),
+    ``opacity_logits`` (N,), ``sh0`` (N, 1, 3), ``shN`` (N, (sh_degree + 1)^2 - 1, 3).
+
+    Args:
+        sh_degree: the highest spherical-harmonic degree of the colours (0 to 3).
+        initial_opacity: every Gaussian's opacity at the start (3DGS: 0.1).
+    """
+
+    variable_size_parameters = PARAMETERS
+
+    def __init__(self, sh_degree: int = 3, initial_opacity: float = 0.1) -> None:
+        super().__init__()
+        if not 0 <= sh_degree <= 3:
+            raise ValueError(f"model.gaussians.sh_degree must be 0 to 3, got {sh_degree}")
+        self.sh_degree, self.initial_opacity = sh_degree, initial_opacity
+        higher = coefficients_for(sh_degree) - 1
+        for name, shape in zip(PARAMETERS, ((0, 3), (0, 4), (0, 3), (0,), (0, 1, 3), (0, higher, 3))):
+            setattr(self, name, nn.Parameter(torch.zeros(shape)))
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        """(N,) in (0, 1)."""
+        return torch.sigmoid(self.opacity_logits)
+
+    @property
+    def coefficients(self) -> torch.Tensor:
+        """(N, (sh_degree + 1)^2, 3) every band's coefficients."""
+        return torch.cat([self.sh0, self.shN], dim=1)
+
+    @torch.no_grad()
+    def initialise(self, positions: torch.Tensor, colours: torch.Tensor, generator: torch.Generator | None = None) -> None:
+        """Start from (N, 3) ``positions`` with (N, 3) ``colours`` in [0, 1]: each Gaussian round, its scale the mean
+        distance to its 3 nearest neighbours (3DGS's), a random rotation, opacity ``initial_opacity``."""
+        n = positions.shape[0]
+        device = self.means.device
+        positions, colours = positions.to(device, torch.float32), colours.to(device, torch.float32)
+        distances = nearest_neighbour_distances(positions, 3).mean(dim=-1).clamp(min=1e-7)
+        values = {
+            "means": positions,
+            "quats": torch.nn.functional.normalize(torch.randn(n, 4, generator=generator).to(device), dim=-1),
+            "log_scales": torch.log(distances)[:, None].repeat(1, 3),
+            "opacity_logits": torch.full((n,), inverse_sigmoid(self.initial_opacity), device=device),
+            "sh0": rgb_to_sh(colours)[:, None, :],
+            "shN": torch.zeros(n, self.shN.shape[1], 3, device=device),
+        }
+        for name, value in values.items():
+            setattr(self, name, nn.Parameter(value))
+
+    def edit(self, values: dict[str, torch.Tensor], rows_from: torch.Tensor,
+             replace: Callable[[nn.Module, str, torch.Tensor, torch.Tensor | None], nn.Parameter]) -> None:
+        """Replace every parameter by ``values[name]`` (N_new rows each), its optimiser state carried by ``rows_from``
+        (N_new,): the old row each new row continues, or -1 for a fresh one (zeros). ``replace`` is the model's
+        :meth:`~nerf_lightning.models.base.FieldModule.replace_parameter`."""
+        if set(values) != set(PARAMETERS) or any(len(value) != len(rows_from) for value in values.values()):
+            raise ValueError(f"Gaussians.edit needs {', '.join(PARAMETERS)}, each of {len(rows_from)} rows, got "
+                             f"{ {name: tuple(value.shape) for name, value in values.items()} }")
+        for name in PARAMETERS:
+            replace(self, name, values[name].detach(), rows_from)
+
+
+def nearest_neighbour_distances(points: torch.Tensor, k: int, chunk: int = 1024) -> torch.Tensor:
+    """(N, 3) points -> (N, k) distances to each point's k nearest others (fewer than k + 1 points: as many as there
+    are, padded with the largest), computed ``chunk`` rows at a time so memory stays at chunk x N."""
+    n = points.shape[0]
+    if n < 2:
+        return torch.ones(n, k, device=points.device)
+    found = []
+    for rows in points.split(chunk):
+        distances = torch.cdist(rows, points)  # (chunk, N)
+        nearest = distances.topk(min(k + 1, n), largest=False).values[:, 1:]  # the point itself is the nearest
+        if nearest.shape[1] < k:
+            nearest = torch.cat([nearest, nearest[:, -1:].expand(-1, k - nearest.shape[1])], dim=1)
+        found.append(nearest)
+    return torch.cat(found)

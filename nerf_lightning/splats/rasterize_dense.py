@@ -1,0 +1,51 @@
+"""The reference rasteriser: every footprint evaluated at every pixel, composited front to back. The maths of
+splatting in a screenful, for small images and for the tests that hold :func:`~nerf_lightning.splats.rasterize.rasterize`
+equal to it; memory grows as footprints x pixels.
+
+At pixel centre p, footprint g (centre m_g, conic Q_g, opacity o_g) has
+
+    sigma = 1/2 (p - m_g)^T Q_g (p - m_g),    alpha = min(0.999, o_g exp(-sigma)),
+
+and counts only inside its box (|p - m_g| <= its extents) and where alpha >= 1/255. The footprints are taken nearest
+first (camera z, ties by index) and composited with :func:`~nerf_lightning.rendering.compositing.weights_from_alpha`;
+a pixel is done before the footprint that would take its transmittance to 1e-4 or below (3DGS's early stop), and
+the background shows through what transmittance is left.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from nerf_lightning.rendering.compositing import weights_from_alpha
+from nerf_lightning.splats.projection import MIN_ALPHA, Projection
+
+MAX_ALPHA = 0.999
+# a pixel whose transmittance would fall to this or below takes no more footprints (3DGS's early stop)
+MIN_TRANSMITTANCE = 1e-4
+
+
+def rasterize_dense(projection: Projection, colours: torch.Tensor, height: int, width: int,
+                    background: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, where something is
+    drawn: the weights' mean), accumulation (H, W); ``background`` (3,)."""
+    v, u = torch.meshgrid(torch.arange(height, device=colours.device, dtype=colours.dtype) + 0.5,
+                          torch.arange(width, device=colours.device, dtype=colours.dtype) + 0.5, indexing="ij")
+    order = torch.sort(projection.depths.detach(), stable=True).indices  # nearest first
+    means2d, conics = projection.means2d[order], projection.conics[order]
+    dx = u.reshape(1, -1) - means2d[:, 0:1]  # (M, H * W)
+    dy = v.reshape(1, -1) - means2d[:, 1:2]
+    a, b, c = conics[:, 0:1], conics[:, 1:2], conics[:, 2:3]
+    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+    alpha = (projection.opacities[order, None] * torch.exp(-sigma)).clamp(max=MAX_ALPHA)
+    extents = projection.extents[order].detach()
+    counts = (dx.detach().abs() <= extents[:, 0:1]) & (dy.detach().abs() <= extents[:, 1:2]) & (sigma.detach() >= 0) \
+        & (alpha.detach() >= MIN_ALPHA)
+    alpha = torch.where(counts, alpha, torch.zeros_like(alpha)).t()  # (H * W, M): a pixel's row, nearest first
+    composited = weights_from_alpha(alpha)
+    done = (composited.transmittance * (1.0 - alpha)).detach() <= MIN_TRANSMITTANCE
+    weights = torch.where(done, torch.zeros_like(alpha), composited.weights)
+    accumulation = weights.sum(dim=-1)
+    rgb = weights @ colours[order] + (1.0 - accumulation)[:, None] * background
+    depth = (weights @ projection.depths[order]) / accumulation.clamp(min=1e-10)
+    return {"rgb": rgb.reshape(height, width, 3), "depth": depth.reshape(height, width),
+            "accumulation": accumulation.reshape(height, width)}

@@ -1,0 +1,108 @@
+"""Gaussian splats trained for real on the procedural scene; densification keeping the optimiser in step; the start
+from sparse points or at random; the refusals of data=rays and NDC."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
+from nerf_lightning.splats.projection import Projection
+from nerf_lightning.splats.strategy import DefaultStrategy
+from nerf_lightning.training import train
+
+QUICK = ["experiment=splat_procedural", "data.scene.size=32", "trainer.enable_progress_bar=false",
+         "model.random_count=3000", "data.val_views=2"]
+
+
+def test_a_short_run_on_the_procedural_scene_passes_a_bar_well_above_its_mean_colour(make_config, scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    cfg = make_config(*QUICK, "trainer.max_steps=400", "data.val_every=400", "model.strategy.refine_start=100",
+                      "model.strategy.refine_every=50", "model.strategy.refine_stop=350", "model.strategy.reset_every=10000")
+    metrics = train(cfg)
+    # the training views' mean colour scores 10.1 dB on the held-out views of this scene; 400 steps of splats about 19
+    assert metrics["step"] == 400 and metrics["val/psnr"] > 17.0, metrics
+    assert metrics["train/gaussians"] != 3000  # densification grew or pruned them
+
+
+def gaussians_for(n: int) -> Gaussians:
+    g = Gaussians(sh_degree=1)
+    generator = torch.Generator().manual_seed(0)
+    g.initialise(torch.randn(n, 3, generator=generator), torch.rand(n, 3, generator=generator), generator)
+    return g
+
+
+def test_a_refinement_keeps_every_optimiser_state_the_size_of_its_parameter():
+    g = gaussians_for(200)
+    with torch.no_grad():
+        g.log_scales[:100] = math.log(0.001)  # small: these clone
+        g.log_scales[100:] = math.log(0.5)  # large: these split
+        g.opacity_logits[150:] = -8.0  # nearly transparent: these are pruned
+    optimizer = torch.optim.Adam([getattr(g, name) for name in PARAMETERS], lr=1e-3)
+    (sum(getattr(g, name).sum() for name in PARAMETERS)).backward()
+    optimizer.step()
+
+    def replace(owner, name, value, rows_from):
+        from nerf_lightning.models.parameters import replace_parameter
+
+        return replace_parameter(owner, name, value, [optimizer], rows_from)
+
+    strategy = DefaultStrategy(refine_start=0, refine_every=1, prune_scale3d=100.0)
+    strategy.scene_scale = 1.0
+    means2d = torch.zeros(200, 2, requires_grad=True)
+    # screen gradients (in units of half a 2x2 image: as they are) over the 2e-4 threshold from index 20 on
+    means2d.grad = torch.stack([torch.where(torch.arange(200) >= 20, 1e-3, 1e-5), torch.zeros(200)], dim=-1)
+    projection = Projection(torch.arange(200), means2d, torch.zeros(200, 3), torch.zeros(200), torch.zeros(200), torch.zeros(200, 2))
+    strategy.after_backward(g, projection, width=2, height=2)
+    old_exp_avg = optimizer.state[g.means]["exp_avg"].clone()
+    strategy.after_step(g, step=1, replace=replace)
+    # 20 untouched, 80 cloned (+80), 100 split (-100 +200): 380, less the transparent ones (50 split into 100, pruned)
+    assert len(g) == 20 + 80 + 80 + 100
+    for name in PARAMETERS:
+        parameter = getattr(g, name)
+        assert parameter.shape[0] == len(g)
+        state = optimizer.state[parameter]
+        assert state["exp_avg"].shape == parameter.shape and state["exp_avg_sq"].shape == parameter.shape
+        assert any(parameter is p for group in optimizer.param_groups for p in group["params"])
+    # the 100 that stayed (20 plus the 80 clones' originals) kept their state, the new ones start at zero
+    torch.testing.assert_close(optimizer.state[g.means]["exp_avg"][:100], old_exp_avg[:100])
+    assert optimizer.state[g.means]["exp_avg"][100:].abs().max() == 0
+
+
+def test_opacities_are_reset_with_their_optimiser_state():
+    g = gaussians_for(10)
+    with torch.no_grad():
+        g.opacity_logits.fill_(3.0)
+    optimizer = torch.optim.Adam([getattr(g, name) for name in PARAMETERS], lr=1e-3)
+    (sum(getattr(g, name).sum() for name in PARAMETERS)).backward()
+    optimizer.step()
+    from nerf_lightning.models.parameters import replace_parameter
+
+    DefaultStrategy(reset_every=5).after_step(g, step=5, replace=lambda o, n, v, r: replace_parameter(o, n, v, [optimizer], r))
+    assert float(torch.sigmoid(g.opacity_logits.detach()).max()) == pytest.approx(0.01, rel=1e-4)
+    assert optimizer.state[g.opacity_logits]["exp_avg"].abs().max() == 0
+    assert optimizer.state[g.means]["exp_avg"].abs().max() > 0
+
+
+def test_a_view_without_gaussians_in_sight_is_drawn_as_background(make_config, scene_cache, monkeypatch):
+    from hydra.utils import instantiate
+
+    model = instantiate(make_config(*QUICK).model)
+    model.gaussians.initialise(torch.tensor([[0.0, 0.0, -50.0]]), torch.ones(1, 3))
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    out = model.render_view(K, torch.eye(4), 32, 32)  # looking down +z: the one Gaussian is behind
+    torch.testing.assert_close(out["rgb"], model.space.background.expand(32, 32, 3))
+    assert out["accumulation"].abs().max() == 0
+
+
+def test_splats_refuse_rays_and_a_contracted_space_by_name(make_config, scene_cache, monkeypatch, tiny_data):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    with pytest.raises(ValueError, match="Gaussian splats train on whole views or patches: use data=views"):
+        train(make_config("experiment=splat_procedural", "data=procedural", "trainer.max_steps=1", "trainer.enable_progress_bar=false"))
+    with pytest.raises(ValueError, match="data.ndc and data.contract must be false"):
+        train(make_config(*QUICK, "data.contract=true", "trainer.max_steps=1"))
+
+
+from tests.test_experiments import tiny_data  # noqa: E402,F401 (a fixture)

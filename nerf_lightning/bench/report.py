@@ -23,18 +23,23 @@ data from `../shared/data` (`nerf-bench run --data-dir` names another folder); s
 """
 
 
+def read_results(path: Path) -> dict[str, Any]:
+    """A suite's results JSON (``{suite, rows}``; an empty one where the file does not exist yet); SuiteError naming
+    the file for anything else."""
+    if not path.exists():
+        return {"suite": path.stem, "rows": []}
+    try:
+        results = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise SuiteError(f"{path} is not a results JSON ({error}); move it away to start the suite's results afresh") from None
+    if not isinstance(results, dict) or not isinstance(results.get("rows"), list):
+        raise SuiteError(f"{path}: expected {{suite, rows: [...]}}, as nerf-bench writes")
+    return results
+
+
 def read_all(results_dir: Path) -> list[dict[str, Any]]:
     """Every row of every results JSON in ``results_dir``."""
-    rows = []
-    for path in sorted(Path(results_dir).glob("*.json")):
-        try:
-            results = json.loads(path.read_text())
-        except json.JSONDecodeError as error:
-            raise SuiteError(f"{path} is not a results JSON ({error})") from None
-        if not isinstance(results, dict) or not isinstance(results.get("rows"), list):
-            raise SuiteError(f"{path}: expected {{suite, rows: [...]}}, as nerf-bench writes")
-        rows.extend(results["rows"])
-    return rows
+    return [row for path in sorted(Path(results_dir).glob("*.json")) for row in read_results(path)["rows"]]
 
 
 def _number(value: float | None, digits: int) -> str:

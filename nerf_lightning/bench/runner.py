@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from nerf_lightning.bench.report import read_results
 from nerf_lightning.bench.suite import Row, Suite, SuiteError, load_suite, shipped_suites
 
 DEFAULT_RESULTS = Path("docs/results")
@@ -141,18 +142,6 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[
 
 def results_path(results_dir: Path, suite: Suite) -> Path:
     return results_dir / f"{suite.name}.json"
-
-
-def read_results(path: Path) -> dict[str, Any]:
-    if not path.exists():
-        return {"suite": path.stem, "rows": []}
-    try:
-        results = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise SuiteError(f"{path} is not a results JSON ({error}); move it away to start the suite's results afresh") from None
-    if not isinstance(results, dict) or not isinstance(results.get("rows"), list):
-        raise SuiteError(f"{path}: expected {{suite, rows: [...]}}, as nerf-bench writes")
-    return results
 
 
 def write_results(path: Path, results: dict[str, Any]) -> None:

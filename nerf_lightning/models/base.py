@@ -11,7 +11,11 @@ import lightning as L
 import torch
 from torch import nn
 
+from torchmetrics import MeanMetric
+
 from nerf_lightning.errors import NonFiniteLossError
+from nerf_lightning.geometry.space import SceneSpace
+from nerf_lightning.metrics import image_metrics
 from nerf_lightning.models.parameters import GroupSchedules, check_groups, replace_parameter, resize_to_saved
 
 
@@ -92,3 +96,39 @@ class FieldModule(L.LightningModule):
             torch.set_rng_state(state["torch"])
             if state["cuda"] and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
                 torch.cuda.set_rng_state_all(state["cuda"])
+
+
+class SceneModule(FieldModule):
+    """A model of a posed scene (a radiance field, Gaussian splats): it renders cameras (``render_view``, the model
+    contract) in the scene's space (:class:`~nerf_lightning.geometry.space.SceneSpace`, kept in checkpoints), and
+    validates on whole held-out views: ``val/psnr``, ``val/ssim`` and, where the scene has true depth,
+    ``val/depth_error`` (:func:`~nerf_lightning.metrics.image_metrics`), the renders returned for the snapshots."""
+
+    def __init__(self, optimizer: Callable[..., torch.optim.Optimizer], scheduler: Callable[..., Any] | None = None) -> None:
+        super().__init__(optimizer, scheduler)
+        self.space = SceneSpace()
+        # the mean over the validated views where a surface is seen (NaN views left out), summed over DDP ranks
+        self.val_depth_error = MeanMetric(nan_strategy="ignore")
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
+        height, width = batch["height"], batch["width"]
+        out = self.render_view(batch["K"], batch["c2w"], height, width)
+        target = batch["rgb"].reshape(height, width, 3)
+        true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
+        metrics = image_metrics(out["rgb"], target, out["depth"], true_depth)
+        self.log("val/psnr", metrics["psnr"], prog_bar=True, batch_size=1, sync_dist=True)
+        self.log("val/ssim", metrics["ssim"], batch_size=1, sync_dist=True)
+        if "depth_error" in metrics:  # every rank validates views of the same scene: all log the key, or none does
+            self.val_depth_error.update(metrics["depth_error"])
+            self.log("val/depth_error", self.val_depth_error, batch_size=1)
+        picture = self.space.depth_picture(out["depth"], out["accumulation"])
+        return {"images": {"rgb": out["rgb"], "depth": picture, "target": target}}
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_save_checkpoint(checkpoint)
+        checkpoint["scene_space"] = self.space.state()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        super().on_load_checkpoint(checkpoint)
+        if checkpoint.get("scene_space"):
+            self.space = SceneSpace.from_state(checkpoint["scene_space"]).to(self.device)

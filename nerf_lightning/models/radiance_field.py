@@ -9,19 +9,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
-from torchmetrics import MeanMetric
 
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import image_metrics, mse_to_psnr
-from nerf_lightning.models.base import FieldModule
+from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.models.base import SceneModule
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.rendering.renderer import VolumeRenderer
 from nerf_lightning.rendering.samplers.base import RaySampler
 
 
-class RadianceFieldModule(FieldModule):
+class RadianceFieldModule(SceneModule):
     """Trains a radiance field on random rays with an MSE loss on the rendered colour, plus the sampler's own losses.
 
     Under the model contract (:mod:`nerf_lightning.models.contract`) it renders a camera (:meth:`render_view`), has
@@ -72,9 +71,6 @@ class RadianceFieldModule(FieldModule):
         if train_background not in ("scene", "random"):
             raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
         self.train_background = train_background
-        self.space = SceneSpace()
-        # the mean over the validated views where a surface is seen (NaN views left out), summed over DDP ranks
-        self.val_depth_error = MeanMetric(nan_strategy="ignore")
 
     def use_space(self, space: SceneSpace) -> None:
         """Render in ``space`` from now on; a box of a field or grid that cannot hold it is refused by name."""
@@ -226,30 +222,6 @@ class RadianceFieldModule(FieldModule):
         self.log("train/loss", loss, on_step=True, on_epoch=False)
         self.log("train/psnr", mse_to_psnr(mse.detach()), on_step=True, prog_bar=True)
         return loss
-
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
-        height, width = batch["height"], batch["width"]
-        out = self.render_view(batch["K"], batch["c2w"], height, width)
-        rgb, depth = out["rgb"], out["depth"]
-        target = batch["rgb"].reshape(height, width, 3)
-        true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
-        metrics = image_metrics(rgb, target, depth, true_depth)
-        self.log("val/psnr", metrics["psnr"], prog_bar=True, batch_size=1, sync_dist=True)
-        self.log("val/ssim", metrics["ssim"], batch_size=1, sync_dist=True)
-        if "depth_error" in metrics:  # every rank validates views of the same scene: all log the key, or none does
-            self.val_depth_error.update(metrics["depth_error"])
-            self.log("val/depth_error", self.val_depth_error, batch_size=1)
-        picture = self.space.depth_picture(depth, out["accumulation"])
-        return {"images": {"rgb": rgb, "depth": picture, "target": target}}
-
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        super().on_save_checkpoint(checkpoint)
-        checkpoint["scene_space"] = self.space.state()
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        super().on_load_checkpoint(checkpoint)
-        if checkpoint.get("scene_space"):
-            self.space = SceneSpace.from_state(checkpoint["scene_space"]).to(self.device)
 
 
 def box_edges(low: torch.Tensor, high: torch.Tensor, to_world: Callable[[torch.Tensor], torch.Tensor]) -> np.ndarray:

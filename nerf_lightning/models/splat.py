@@ -14,11 +14,10 @@ from typing import Any
 
 import kornia
 import torch
-from torchmetrics import MeanMetric
 
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import image_metrics, mse_to_psnr
-from nerf_lightning.models.base import FieldModule
+from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.models.base import SceneModule
 from nerf_lightning.splats.gaussians import Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS, rasterize
@@ -28,7 +27,7 @@ from nerf_lightning.splats.strategy import Strategy
 log = logging.getLogger(__name__)
 
 
-class SplatModule(FieldModule):
+class SplatModule(SceneModule):
     """Trains Gaussian splats on whole training views or patches (``data=views``).
 
     Under the model contract it renders a camera (:meth:`render_view`); it has no density field to mesh.
@@ -68,9 +67,7 @@ class SplatModule(FieldModule):
         self.steps, self.means_final_ratio, self.sh_degree_interval = steps, means_final_ratio, sh_degree_interval
         self.ssim_weight, self.antialiased, self.max_pairs = ssim_weight, antialiased, max_pairs
         self.random_count, self.random_extent = random_count, random_extent
-        self.space = SceneSpace()
         self.register_buffer("scene_scale", torch.tensor(1.0))
-        self.val_depth_error = MeanMetric(nan_strategy="ignore")
         self._drawn: tuple[Projection, int, int] | None = None
 
     # -- fitting starts: the scene's space, its scale and the Gaussians' start --------------------------------
@@ -182,26 +179,3 @@ class SplatModule(FieldModule):
         self._drawn = None
         if self.strategy is not None:
             self.strategy.after_step(self.gaussians, self.global_step, self.replace_parameter)
-
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
-        height, width = batch["height"], batch["width"]
-        out = self.render_view(batch["K"], batch["c2w"], height, width)
-        target = batch["rgb"].reshape(height, width, 3)
-        true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
-        metrics = image_metrics(out["rgb"], target, out["depth"], true_depth)
-        self.log("val/psnr", metrics["psnr"], prog_bar=True, batch_size=1, sync_dist=True)
-        self.log("val/ssim", metrics["ssim"], batch_size=1, sync_dist=True)
-        if "depth_error" in metrics:
-            self.val_depth_error.update(metrics["depth_error"])
-            self.log("val/depth_error", self.val_depth_error, batch_size=1)
-        picture = self.space.depth_picture(out["depth"], out["accumulation"])
-        return {"images": {"rgb": out["rgb"], "depth": picture, "target": target}}
-
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        super().on_save_checkpoint(checkpoint)
-        checkpoint["scene_space"] = self.space.state()
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        super().on_load_checkpoint(checkpoint)
-        if checkpoint.get("scene_space"):
-            self.space = SceneSpace.from_state(checkpoint["scene_space"]).to(self.device)

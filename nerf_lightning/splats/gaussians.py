@@ -29,15 +29,20 @@ class Gaussians(nn.Module):
     Args:
         sh_degree: the highest spherical-harmonic degree of the colours (0 to 3).
         initial_opacity: every Gaussian's opacity at the start (3DGS: 0.1).
+        initial_scale: every Gaussian's scale at the start, as a multiple of the mean distance to its 3 nearest
+            neighbours (3DGS: 1). Below 1, a random start covers each pixel with fewer Gaussians: fewer
+            (Gaussian, pixel) pairs to draw while densification has not yet shaped them.
     """
 
     variable_size_parameters = PARAMETERS
 
-    def __init__(self, sh_degree: int = 3, initial_opacity: float = 0.1) -> None:
+    def __init__(self, sh_degree: int = 3, initial_opacity: float = 0.1, initial_scale: float = 1.0) -> None:
         super().__init__()
         if not 0 <= sh_degree <= 3:
             raise ValueError(f"model.gaussians.sh_degree must be 0 to 3, got {sh_degree}")
-        self.sh_degree, self.initial_opacity = sh_degree, initial_opacity
+        if initial_scale <= 0:
+            raise ValueError(f"model.gaussians.initial_scale must be > 0, got {initial_scale}")
+        self.sh_degree, self.initial_opacity, self.initial_scale = sh_degree, initial_opacity, initial_scale
         higher = coefficients_for(sh_degree) - 1
         for name, shape in zip(PARAMETERS, ((0, 3), (0, 4), (0, 3), (0,), (0, 1, 3), (0, higher, 3))):
             setattr(self, name, nn.Parameter(torch.zeros(shape)))
@@ -57,12 +62,13 @@ class Gaussians(nn.Module):
 
     @torch.no_grad()
     def initialise(self, positions: torch.Tensor, colours: torch.Tensor, generator: torch.Generator | None = None) -> None:
-        """Start from (N, 3) ``positions`` with (N, 3) ``colours`` in [0, 1]: each Gaussian round, its scale the mean
-        distance to its 3 nearest neighbours (3DGS's), a random rotation, opacity ``initial_opacity``."""
+        """Start from (N, 3) ``positions`` with (N, 3) ``colours`` in [0, 1]: each Gaussian round, its scale
+        ``initial_scale`` times the mean distance to its 3 nearest neighbours (3DGS's), a random rotation, opacity
+        ``initial_opacity``."""
         n = positions.shape[0]
         device = self.means.device
         positions, colours = positions.to(device, torch.float32), colours.to(device, torch.float32)
-        distances = nearest_neighbour_distances(positions, 3).mean(dim=-1).clamp(min=1e-7)
+        distances = self.initial_scale * nearest_neighbour_distances(positions, 3).mean(dim=-1).clamp(min=1e-7)
         values = {
             "means": positions,
             "quats": torch.nn.functional.normalize(torch.randn(n, 4, generator=generator).to(device), dim=-1),

@@ -106,3 +106,14 @@ def test_splats_refuse_rays_and_a_contracted_space_by_name(make_config, scene_ca
 
 
 from tests.test_experiments import tiny_data  # noqa: E402,F401 (a fixture)
+
+
+def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():
+    positions = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0], [10.0, 10.0, 10.0]])
+    full, smaller = Gaussians(sh_degree=0), Gaussians(sh_degree=0, initial_scale=0.25)
+    full.initialise(positions, torch.rand(5, 3))
+    smaller.initialise(positions, torch.rand(5, 3))
+    assert float(full.log_scales[0, 0]) == pytest.approx(math.log(2.0))  # (1 + 2 + 3) / 3
+    torch.testing.assert_close(smaller.log_scales.detach(), full.log_scales.detach() + math.log(0.25))
+    with pytest.raises(ValueError, match="initial_scale must be > 0"):
+        Gaussians(initial_scale=0.0)

@@ -38,7 +38,7 @@ def gpu_name(device: str = "auto") -> str | None:
     """The accelerator's name, or None where the figures are the CPU's (``device`` cpu, or no GPU here)."""
     if device == "cpu":
         return None
-    if torch.cuda.is_available() and device in ("auto", "cuda") or device.startswith("cuda:"):
+    if torch.cuda.is_available() and (device in ("auto", "cuda") or device.startswith("cuda:")):
         return torch.cuda.get_device_name(torch.device(device if device.startswith("cuda") else "cuda"))
     if device in ("auto", "mps") and torch.backends.mps.is_available():
         return f"Apple GPU ({cpu_model()})"

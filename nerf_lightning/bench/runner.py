@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from nerf_lightning.bench.report import read_results
+from nerf_lightning.bench.report import read_results, write_report
 from nerf_lightning.bench.suite import Row, Suite, SuiteError, load_suite, shipped_suites
 
 DEFAULT_RESULTS = Path("docs/results")
@@ -180,8 +180,6 @@ def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, 
         print(f"[{row.id}] {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f}, {result['steps']} steps, "
               f"{result['seconds_per_step']:.4f} s a step, {result['seconds_per_frame']:.2f} s a frame -> {path}", flush=True)
         if report is not None:
-            from nerf_lightning.bench.report import write_report
-
             write_report(results_dir, report)
     return measured
 
@@ -213,8 +211,6 @@ def main(argv: list[str] | None = None) -> None:
                 for row in suite.rows:
                     print(f"  {row.id}  data={row.data or '(built in)'}  marks={', '.join(f'{m:g}' for m in row.marks)}  device={row.device}")
         elif args.command == "report":
-            from nerf_lightning.bench.report import write_report
-
             print(write_report(args.results, args.report))
         else:
             suite = load_suite(args.suite)

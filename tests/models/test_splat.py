@@ -97,15 +97,13 @@ def test_a_view_without_gaussians_in_sight_is_drawn_as_background(make_config, s
     assert out["accumulation"].abs().max() == 0
 
 
-def test_splats_refuse_rays_and_a_contracted_space_by_name(make_config, scene_cache, monkeypatch, tiny_data):
+def test_splats_refuse_rays_and_a_contracted_space_by_name(make_config, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     with pytest.raises(ValueError, match="Gaussian splats train on whole views or patches: use data=views"):
         train(make_config("experiment=splat_procedural", "data=procedural", "trainer.max_steps=1", "trainer.enable_progress_bar=false"))
     with pytest.raises(ValueError, match="data.ndc and data.contract must be false"):
         train(make_config(*QUICK, "data.contract=true", "trainer.max_steps=1"))
 
-
-from tests.test_experiments import tiny_data  # noqa: E402,F401 (a fixture)
 
 
 def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():

@@ -1,17 +1,12 @@
 """Pictures of cameras and rays: nerf-viz-cameras, and the viser view in a headless browser."""
 
-import shutil
-import socket
-import subprocess
-import time
-
 import imageio.v3 as iio
 import numpy as np
-import pytest
 
 from nerf_lightning.geometry import pinhole_camera
 from nerf_lightning.viz.rays_sample import draw_rays
 from tests.conftest import run_cli
+from tests.viz.conftest import free_port, needs_browser, wait_for
 
 
 def test_one_cameras_rays_stay_inside_its_frustum(procedural_scene):
@@ -37,41 +32,23 @@ def test_nerf_viz_cameras_writes_the_picture(tmp_path, scene_cache, monkeypatch)
     assert red > 200 and green > 100 and blue > 200
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-@pytest.mark.skipif(shutil.which("chromium") is None, reason="Debian's chromium is not installed")
-def test_viser_view_reaches_a_headless_browser(procedural_scene, tmp_path):
-    pytest.importorskip("viser")
+@needs_browser
+def test_viser_view_reaches_a_headless_browser(procedural_scene, browser, tmp_path):
     from nerf_lightning.viz.viser_view import serve_scene
 
-    port = _free_port()
     all_rays = draw_rays(procedural_scene, 32, 8, seed=0)
     one = draw_rays(procedural_scene, 16, 8, camera=0, seed=1)
-    server = serve_scene(procedural_scene, all_rays, one, 0, port=port)
+    server = serve_scene(procedural_scene, all_rays, one, 0, port=free_port())
     try:
-        browser = subprocess.Popen(
-            ["chromium", "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
-             "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={tmp_path / 'profile'}", "--window-size=800,600", "--virtual-time-budget=15000",
-             f"--screenshot={tmp_path / 'view.png'}", f"http://127.0.0.1:{port}/"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )
-        deadline = time.monotonic() + 60
-        connected = False
-        while time.monotonic() < deadline and browser.poll() is None:
-            connected = connected or len(server.get_clients()) > 0
-            time.sleep(0.2)
-        browser.kill()
-        connected = connected or len(server.get_clients()) > 0
-        assert connected, "the browser never opened a connection to the viser server"
-        screenshot = iio.imread(tmp_path / "view.png")[..., :3].astype(int)
-        # the scene arrived: the frustums' own blue (40, 90, 200), which viser's interface does not use, is drawn
-        frustum_blue = (np.abs(screenshot - np.array([40, 90, 200])).max(axis=-1) < 40).sum()
-        assert frustum_blue > 500, f"only {frustum_blue} pixels of frustum colour in the screenshot"
+        page = browser.new_page(viewport={"width": 800, "height": 600})
+        page.goto(f"http://127.0.0.1:{server.get_port()}/")
+        wait_for(lambda: len(server.get_clients()) > 0, what="the page to connect to the viser server")
+
+        def frustum_blue() -> int:
+            # the scene arrived: the frustums' own blue (40, 90, 200), which viser's interface does not use, is drawn
+            screenshot = iio.imread(page.screenshot(), extension=".png")[..., :3].astype(int)
+            return int((np.abs(screenshot - np.array([40, 90, 200])).max(axis=-1) < 40).sum())
+
+        wait_for(lambda: frustum_blue() > 500, what="the camera frustums to be drawn")
     finally:
         server.stop()
-

@@ -8,7 +8,6 @@ import json
 import math
 import os
 import re
-import shutil
 import signal
 import socket
 import subprocess
@@ -29,19 +28,12 @@ from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.viz.scheduler import BrowserCamera, RenderScheduler, browser_camera, progressive_heights
 from nerf_lightning.viz.viser_view import check_port
+from tests.viz.conftest import free_port, needs_browser, wait_for
 
-CHROMIUM = shutil.which("chromium")
-needs_browser = pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)")
 
 # a short run of the fast preset: 150 steps, a 32^3 occupancy grid
 RUN = ["experiment=fast", "trainer.max_steps=150", "model.sampler.grid.resolution=32", "data.val_every=150",
        "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +130,7 @@ def test_without_the_extra_the_commands_say_how_to_install_it(tmp_path):
 def test_nerf_view_serves_its_page_until_ctrl_c(trained, scene_cache, tmp_path):
     """The installed nerf-view on a trained checkpoint: it says where to look, that address serves the viewer's page,
     and Ctrl-C stops it cleanly."""
-    port = _free_port()
+    port = free_port()
     env = dict(os.environ, NERF_LIGHTNING_CACHE=str(scene_cache), PYTHONUNBUFFERED="1")
     log_path = tmp_path / "view.log"
     command = [str(Path(sys.executable).parent / "nerf-view"), f"ckpt_path={trained['ckpt']}", f"port={port}", "device=cpu",
@@ -148,7 +140,7 @@ def test_nerf_view_serves_its_page_until_ctrl_c(trained, scene_cache, tmp_path):
         process = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT,
                                    preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
-            _wait(lambda: "in a browser" in log_path.read_text() or process.poll() is not None, seconds=120, what="nerf-view to start")
+            wait_for(lambda: "in a browser" in log_path.read_text() or process.poll() is not None, seconds=120, what="nerf-view to start")
             assert process.poll() is None, log_path.read_text()[-3000:]
             assert f"open http://127.0.0.1:{port} in a browser" in log_path.read_text()
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30) as response:
@@ -251,7 +243,7 @@ class FakeModelWithABox(FakeModel):
 @pytest.fixture
 def server():
     viser = pytest.importorskip("viser")
-    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     yield server
     server.stop()
 
@@ -327,14 +319,14 @@ def test_the_live_viewer_refuses_a_model_that_renders_no_camera(tmp_path):
     from nerf_lightning.callbacks import LiveViewer
     from nerf_lightning.training import train
 
-    callback = LiveViewer(port=_free_port(), output_dir=tmp_path)
+    callback = LiveViewer(port=free_port(), output_dir=tmp_path)
     with pytest.raises(ValueError) as refused:
         callback.setup(SimpleNamespace(is_global_zero=True), torch.nn.Linear(1, 1), "fit")
     assert str(refused.value) == ("viewer=live shows a model that renders a camera; this run trains a Linear, which renders none: "
                                   "leave viewer out, or train a radiance field (experiment=fast, ...)")
     assert callback.server is None
     with pytest.raises(ValueError, match="^viewer=live shows a model that renders a camera; this run trains a ImageFieldModule"):
-        train(compose_config(["viewer=live", f"callbacks.viewer.port={_free_port()}", "trainer.max_steps=1",
+        train(compose_config(["viewer=live", f"callbacks.viewer.port={free_port()}", "trainer.max_steps=1",
                               f"paths.output_dir={tmp_path / 'image'}"]))
 
 
@@ -353,7 +345,7 @@ class _FakeViewer:
 def _live_viewer(tmp_path, viewer, stopped=None):
     from nerf_lightning.callbacks import LiveViewer
 
-    callback = LiveViewer(port=_free_port(), output_dir=tmp_path)
+    callback = LiveViewer(port=free_port(), output_dir=tmp_path)
     callback.viewer = viewer
     callback.server = SimpleNamespace(get_clients=lambda: {1: object()}, stop=lambda: stopped.append(True) if stopped is not None else None)
     callback._started = time.perf_counter() - 100.0
@@ -395,27 +387,6 @@ def test_the_live_view_renders_without_gradients_and_leaves_the_module_training(
 # -- in the browser -----------------------------------------------------------------------------------------------
 
 
-@pytest.fixture
-def browser():
-    pytest.importorskip("viser")
-    playwright = pytest.importorskip("playwright.sync_api")
-    if CHROMIUM is None:
-        pytest.skip("Debian's chromium is not installed (.ci/run installs it)")
-    with playwright.sync_playwright() as driver:
-        chromium = driver.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
-        yield chromium
-        chromium.close()
-
-
-def _wait(condition, seconds: float = 60.0, what: str = "") -> None:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.1)
-    pytest.fail(f"waited {seconds:.0f} s for {what}")
-
-
 def _canvas(page) -> np.ndarray:
     """The page's screenshot left of the control panel and below the notifications: (H, W, 3) int."""
     import imageio.v3 as iio
@@ -440,7 +411,7 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
     from nerf_lightning.viz.viser_view import start_server
 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    port = _free_port()
+    port = free_port()
     # the viewer nerf-view starts, built as it builds it, to look inside (test_nerf_view_serves_its_page_until_ctrl_c
     # runs the command itself)
     server = start_server("127.0.0.1", port)
@@ -452,11 +423,11 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
     try:
         page = browser.new_page(viewport={"width": 800, "height": 600})
         page.goto(f"http://127.0.0.1:{port}/")
-        _wait(lambda: len(viewer.server.get_clients()) == 1, what="the page to connect")
+        wait_for(lambda: len(viewer.server.get_clients()) == 1, what="the page to connect")
         client_id = next(iter(viewer.server.get_clients()))
         viewer.page.show_cameras.value = False  # the frustums show the training images: keep them out of the picture
         viewer.page.set_cameras_visible(False)
-        _wait(lambda: viewer.scheduler.settled(client_id), what="the first view to be refined")
+        wait_for(lambda: viewer.scheduler.settled(client_id), what="the first view to be refined")
         frame = viewer.last_frame[client_id]
         assert frame["height"] == 256 and frame["output"] == "rgb"
         time.sleep(1.0)
@@ -475,13 +446,13 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
         page.mouse.down()
         page.mouse.move(330, 380, steps=12)
         page.mouse.up()
-        _wait(lambda: viewer.scheduler.version(client_id) > version and viewer.scheduler.settled(client_id), what="the moved camera's frame")
+        wait_for(lambda: viewer.scheduler.version(client_id) > version and viewer.scheduler.settled(client_id), what="the moved camera's frame")
         time.sleep(1.0)
         moved = _canvas(page)
         assert np.abs(moved - first).mean() > 5.0, "dragging in the page did not change the picture"
 
         _choose(page, "Show", "depth")
-        _wait(lambda: viewer.last_frame[client_id]["output"] == "depth" and viewer.scheduler.settled(client_id), what="the depth view")
+        wait_for(lambda: viewer.last_frame[client_id]["output"] == "depth" and viewer.scheduler.settled(client_id), what="the depth view")
         time.sleep(1.0)
         depth = _canvas(page)
         assert np.abs(depth - moved).mean() > 10.0, "the depth view looks like the rgb one"
@@ -490,7 +461,7 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
         _choose(page, "Show", "rgb")
         viewer.page.look_through(viewer.server.get_clients()[client_id], 3)
         train = viewer.page.train_views
-        _wait(lambda: np.allclose(viewer.scheduler.camera(client_id).position, train.c2w[3, :3, 3].numpy(), atol=1e-3)
+        wait_for(lambda: np.allclose(viewer.scheduler.camera(client_id).position, train.c2w[3, :3, 3].numpy(), atol=1e-3)
               and viewer.last_frame[client_id]["output"] == "rgb" and viewer.scheduler.settled(client_id), what="the view through camera 3")
         seen = torch.from_numpy(viewer.last_frame[client_id]["picture"]).permute(2, 0, 1)[None].float() / 255.0
         image = torch.nn.functional.interpolate(train.images[3].permute(2, 0, 1)[None].float() / 255.0, size=seen.shape[-2:], mode="area")
@@ -501,7 +472,7 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
 
         viewer.page.path_frames.value, viewer.page.path_scale.value = 4, 0.25
         page.get_by_role("button", name="Render to GIF").click()
-        _wait(lambda: "wrote" in viewer.page.path_status.content, seconds=120, what="the orbit GIF")
+        wait_for(lambda: "wrote" in viewer.page.path_status.content, seconds=120, what="the orbit GIF")
         gifs = list((tmp_path / "renders").glob("*_orbit/rgb.gif"))
         assert len(gifs) == 1 and viewer.page.path_status.content == f"wrote {gifs[0]}"
     finally:
@@ -513,7 +484,7 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
 def test_training_with_a_live_view_reaches_the_same_psnr_and_outlives_the_browser(trained, browser, scene_cache, tmp_path):
     """nerf-train viewer=live with a browser that connects mid-run, then goes away: the run finishes, within 0.5 dB of
     the same run without the view, and rendered at most about 10% of the time."""
-    port = _free_port()
+    port = free_port()
     env = dict(os.environ, NERF_LIGHTNING_CACHE=str(scene_cache), PYTHONUNBUFFERED="1")
     run_dir = tmp_path / "live"
     command = [sys.executable, "-m", "nerf_lightning.cli.train", *RUN, "viewer=live", f"callbacks.viewer.port={port}", f"paths.output_dir={run_dir}"]
@@ -521,7 +492,7 @@ def test_training_with_a_live_view_reaches_the_same_psnr_and_outlives_the_browse
     with open(log_path, "w") as log:
         run = subprocess.Popen(command, cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
         try:
-            _wait(lambda: "live view of the training field" in log_path.read_text() or run.poll() is not None, what="the live view")
+            wait_for(lambda: "live view of the training field" in log_path.read_text() or run.poll() is not None, what="the live view")
             assert run.poll() is None, log_path.read_text()[-3000:]
             page = browser.new_page(viewport={"width": 640, "height": 480})
             page.goto(f"http://127.0.0.1:{port}/")
@@ -530,7 +501,7 @@ def test_training_with_a_live_view_reaches_the_same_psnr_and_outlives_the_browse
                 return int(found[-1]) if found else 0
 
             # the page follows training: the picture is rendered again as the field changes
-            _wait(lambda: frames_shown() >= 3 or run.poll() is not None, seconds=120, what="three frames in the page")
+            wait_for(lambda: frames_shown() >= 3 or run.poll() is not None, seconds=120, what="three frames in the page")
             assert run.poll() is None, "the run ended before the page showed three frames"
             page.close()  # the browser goes away mid-run
             assert run.wait(timeout=600) == 0, log_path.read_text()[-3000:]

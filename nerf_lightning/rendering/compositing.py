@@ -131,15 +131,34 @@ def _packed(
     return Compositing(transmittance * alpha, transmittance, alpha, after)
 
 
+# the columns of the table a ray's sums are laid out in: a longer ray takes several rows, whose totals are summed the
+# same way one level up (the table stays about the size of the samples however long the longest ray)
+ROW_LENGTH = 32
+
+
 def _exclusive_and_total_packed(values: torch.Tensor, ray_indices: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(M,) values -> (M,) exclusive sums within each ray (:func:`exclusive_sum_packed`) and (N,) each ray's total,
-    the last column of the same row sums (0 for a ray without samples)."""
+    """(M,) values -> (M,) exclusive sums within each ray (:func:`exclusive_sum_packed`) and (N,) each ray's total
+    (0 for a ray without samples).
+
+    Each ray's values fill rows of :data:`ROW_LENGTH` columns (a ray of 70 samples: three rows), every row is summed
+    along itself, and the rows' totals are summed within their ray by the same function, one level up: every sum adds
+    up values of one ray only, so float32 is as exact as the values themselves."""
     if values.numel() == 0:
         return values.clone(), values.new_zeros(n_rays)
     counts = torch.bincount(ray_indices, minlength=n_rays)
     rank = torch.arange(values.shape[0], device=values.device) - (torch.cumsum(counts, 0) - counts)[ray_indices]  # (M,) within its ray
-    sums = values.new_zeros(n_rays, int(counts.max()) + 1).index_put((ray_indices, rank + 1), values).cumsum(dim=1)
-    return sums[ray_indices, rank], sums[:, -1]
+    longest = int(counts.max())
+    if longest <= ROW_LENGTH:
+        sums = values.new_zeros(n_rays, longest + 1).index_put((ray_indices, rank + 1), values).cumsum(dim=1)
+        return sums[ray_indices, rank], sums[:, -1]
+    rows_per_ray = (counts + ROW_LENGTH - 1) // ROW_LENGTH  # (N,)
+    first_row = torch.cumsum(rows_per_ray, 0) - rows_per_ray
+    row = first_row[ray_indices] + rank // ROW_LENGTH  # (M,) rows of one ray contiguous, in order
+    n_rows = int(rows_per_ray.sum())
+    sums = values.new_zeros(n_rows, ROW_LENGTH + 1).index_put((row, rank % ROW_LENGTH + 1), values).cumsum(dim=1)
+    row_ray = torch.repeat_interleave(torch.arange(n_rays, device=values.device), rows_per_ray, output_size=n_rows)
+    before_row, total = _exclusive_and_total_packed(sums[:, -1], row_ray, n_rays)
+    return sums[row, rank % ROW_LENGTH] + before_row[row], total
 
 
 def _check_rows(values: torch.Tensor, transmittance_before: torch.Tensor | None) -> None:

@@ -55,6 +55,28 @@ def test_exclusive_sum_packed_restarts_at_every_ray():
     torch.testing.assert_close(got, torch.tensor([0.0, 1.0, 3.0, 0.0, 10.0, 0.0]))
 
 
+def test_exclusive_sum_packed_of_rays_longer_than_a_row_equals_each_rays_own_cumsum():
+    """Rays of 0 to 1500 samples: one row, several rows, rows of rows (ROW_LENGTH^2 < 1500); values and gradients."""
+    from nerf_lightning.rendering.compositing import ROW_LENGTH, weights_from_alpha_packed
+
+    assert ROW_LENGTH**2 < 1500
+    generator = torch.Generator().manual_seed(0)
+    counts = [1500, 0, 1, ROW_LENGTH, ROW_LENGTH + 1, 70, 3]
+    ray_indices = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    values = torch.rand(len(ray_indices), generator=generator, dtype=torch.float64, requires_grad=True)
+    got = exclusive_sum_packed(values, ray_indices, n_rays=len(counts))
+    expected = torch.cat([torch.cumsum(part, 0) - part for part in values.split(counts)])
+    torch.testing.assert_close(got, expected)
+    weights = torch.rand(len(got), generator=generator, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((got * weights).sum(), values)
+    (expected_grad,) = torch.autograd.grad((expected * weights).sum(), values)
+    torch.testing.assert_close(grad, expected_grad)
+    # and the totals: what leaves each ray
+    alpha = 0.01 * torch.rand(len(ray_indices), generator=generator, dtype=torch.float64)
+    after = weights_from_alpha_packed(alpha, ray_indices, len(counts)).transmittance_after
+    torch.testing.assert_close(after, torch.stack([torch.prod(1 - part) for part in alpha.split(counts)]))
+
+
 def test_packed_compositing_equals_dense_compositing_of_the_same_samples():
     generator = torch.Generator().manual_seed(0)
     n_rays, n_samples = 6, 9

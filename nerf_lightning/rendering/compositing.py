@@ -131,9 +131,11 @@ def _packed(
     return Compositing(transmittance * alpha, transmittance, alpha, after)
 
 
-# the columns of the table a ray's sums are laid out in: a longer ray takes several rows, whose totals are summed the
-# same way one level up (the table stays about the size of the samples however long the longest ray)
-ROW_LENGTH = 32
+# the columns of the table a ray's sums are laid out in (a power of two: a sample's row and column are a shift and a
+# mask of its rank): a longer ray takes several rows, whose totals are summed the same way one level up, so the table
+# stays about the size of the samples however long the longest ray
+ROW_SHIFT = 5
+ROW_LENGTH = 1 << ROW_SHIFT
 
 
 def _exclusive_and_total_packed(values: torch.Tensor, ray_indices: torch.Tensor, n_rays: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -146,19 +148,20 @@ def _exclusive_and_total_packed(values: torch.Tensor, ray_indices: torch.Tensor,
     if values.numel() == 0:
         return values.clone(), values.new_zeros(n_rays)
     counts = torch.bincount(ray_indices, minlength=n_rays)
-    rank = torch.arange(values.shape[0], device=values.device) - (torch.cumsum(counts, 0) - counts)[ray_indices]  # (M,) within its ray
+    rank = torch.arange(values.shape[0], device=values.device) - (torch.cumsum(counts, 0) - counts).index_select(0, ray_indices)
     longest = int(counts.max())
     if longest <= ROW_LENGTH:
         sums = values.new_zeros(n_rays, longest + 1).index_put((ray_indices, rank + 1), values).cumsum(dim=1)
-        return sums[ray_indices, rank], sums[:, -1]
-    rows_per_ray = (counts + ROW_LENGTH - 1) // ROW_LENGTH  # (N,)
+        return sums.view(-1).index_select(0, ray_indices * (longest + 1) + rank), sums[:, -1]
+    rows_per_ray = (counts + ROW_LENGTH - 1) >> ROW_SHIFT  # (N,)
     first_row = torch.cumsum(rows_per_ray, 0) - rows_per_ray
-    row = first_row[ray_indices] + rank // ROW_LENGTH  # (M,) rows of one ray contiguous, in order
+    row = first_row.index_select(0, ray_indices) + (rank >> ROW_SHIFT)  # (M,) the rows of a ray contiguous, in order
+    cell = row * (ROW_LENGTH + 1) + (rank & (ROW_LENGTH - 1))  # (M,) where in the flattened table its sum lands
     n_rows = int(rows_per_ray.sum())
-    sums = values.new_zeros(n_rows, ROW_LENGTH + 1).index_put((row, rank % ROW_LENGTH + 1), values).cumsum(dim=1)
+    sums = values.new_zeros(n_rows * (ROW_LENGTH + 1)).index_put((cell + 1,), values).view(n_rows, ROW_LENGTH + 1).cumsum(dim=1)
     row_ray = torch.repeat_interleave(torch.arange(n_rays, device=values.device), rows_per_ray, output_size=n_rows)
     before_row, total = _exclusive_and_total_packed(sums[:, -1], row_ray, n_rays)
-    return sums[row, rank % ROW_LENGTH] + before_row[row], total
+    return sums.view(-1).index_select(0, cell) + before_row.index_select(0, row), total
 
 
 def _check_rows(values: torch.Tensor, transmittance_before: torch.Tensor | None) -> None:

@@ -56,52 +56,76 @@ def rasterize(projection: Projection, colours: torch.Tensor, height: int, width:
               max_pairs: int = MAX_PAIRS) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). Differentiable in the footprints and colours."""
-    n_pixels = height * width
-    rgb = colours.new_zeros(n_pixels, 3)
-    depth_sum = colours.new_zeros(n_pixels)
-    accumulation = colours.new_zeros(n_pixels)
+    # footprints nearest first: pairs are listed footprint by footprint, so one stable sort by pixel leaves every
+    # pixel's pairs nearest first (ties by the footprints' order)
+    nearest_first = torch.sort(projection.depths.detach(), stable=True).indices
+    projection = Projection(*(value.index_select(0, nearest_first) for value in projection))
+    shades = torch.cat([colours.index_select(0, nearest_first), projection.depths[:, None]], dim=-1)  # (M, 4): rgb, z
     boxes = pixel_boxes(projection, height, width)
-    # a footprint's place in depth order (ties by index): the second sort key
-    rank = torch.empty_like(projection.depths, dtype=torch.long)
-    rank[torch.sort(projection.depths.detach(), stable=True).indices] = torch.arange(len(rank), device=rank.device)
+    footprints = footprint_table(projection)
+    n_pixels = height * width
+    shaded = colours.new_zeros(n_pixels, 4)
+    accumulation = colours.new_zeros(n_pixels)
     for start, stop in row_bands(boxes, height, max_pairs):
-        footprint, pixel = _pairs(boxes, start, stop, width)
-        alpha, pixel, footprint = _drawn(projection, footprint, pixel, width)
-        order = torch.sort(pixel * max(len(rank), 1) + rank[footprint]).indices  # by pixel, then nearest first
-        alpha, pixel, footprint = alpha[order], pixel[order], footprint[order]
-        # the band's pixels numbered from its first: compositing lays out a row of pairs for each of them only
+        footprint, pixel, alpha = drawn_pairs(footprints, boxes, start, stop, width)
+        pixel, order = torch.sort(pixel, stable=True)
+        pixel, footprint, alpha = pixel.long(), footprint.index_select(0, order), alpha.index_select(0, order)
+        # the band's pixels numbered from its first: compositing lays out rows of pairs for each of them only
         composited = weights_from_alpha_packed(alpha, pixel - start * width, (stop - start) * width)
         done = (composited.transmittance * (1.0 - alpha)).detach() <= MIN_TRANSMITTANCE
         weights = torch.where(done, torch.zeros_like(alpha), composited.weights)
-        rgb = rgb.index_add(0, pixel, weights[:, None] * colours[footprint])
-        depth_sum = depth_sum.index_add(0, pixel, weights * projection.depths[footprint])
+        shaded = shaded.index_add(0, pixel, weights[:, None] * shades.index_select(0, footprint))
         accumulation = accumulation.index_add(0, pixel, weights)
-    rgb = rgb + (1.0 - accumulation)[:, None] * background
-    depth = depth_sum / accumulation.clamp(min=1e-10)
+    rgb = shaded[:, :3] + (1.0 - accumulation)[:, None] * background
+    depth = shaded[:, 3] / accumulation.clamp(min=1e-10)
     return {"rgb": rgb.reshape(height, width, 3), "depth": depth.reshape(height, width),
             "accumulation": accumulation.reshape(height, width)}
 
 
-def _pairs(boxes: torch.Tensor, start: int, stop: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every (footprint, pixel) of the boxes within rows [start, stop): (P,) footprint indices and (P,) pixel indices
-    (row * W + column), footprint by footprint, each box row-major."""
+def footprint_table(projection: Projection) -> torch.Tensor:
+    """(M, 6) what a pair needs of its footprint, in one row so that one gather fetches it: the centre (u, v), the
+    conic (a, b, c) and the opacity."""
+    return torch.cat([projection.means2d, projection.conics, projection.opacities[:, None]], dim=-1)
+
+
+def drawn_pairs(footprints: torch.Tensor, boxes: torch.Tensor, start: int, stop: int,
+                width: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The (footprint, pixel) pairs drawn within rows [start, stop), footprint by footprint and each box row-major:
+    (P,) int32 footprint indices, (P,) int32 pixel indices (row * W + column) and (P,) alphas,
+    min(0.999, o exp(-sigma)), the pixels of each footprint's box where the alpha is at least 1/255.
+
+    ``footprints`` (M, 6) is :func:`footprint_table`, ``boxes`` (M, 4) :func:`pixel_boxes`. The pairs are listed in
+    two steps, each a ``repeat_interleave``: every footprint's rows within its box (a span), then the columns of each
+    span where the footprint is drawn. Along a span dy is fixed and sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is a
+    quadratic in dx, so those columns are the interval where sigma <= log(255 o), solved for once a span: no pair is
+    listed only to be dropped."""
+    device = boxes.device
     first_row, last_row = boxes[:, 2].clamp(min=start), boxes[:, 3].clamp(max=stop - 1)
     columns = (boxes[:, 1] - boxes[:, 0] + 1).clamp(min=0)
-    counts = columns * (last_row - first_row + 1).clamp(min=0)
-    footprint = torch.repeat_interleave(torch.arange(len(boxes), device=boxes.device), counts)
-    within = torch.arange(len(footprint), device=boxes.device) - (counts.cumsum(0) - counts)[footprint]
-    row = first_row[footprint] + within // columns[footprint].clamp(min=1)
-    column = boxes[footprint, 0] + within % columns[footprint].clamp(min=1)
-    return footprint, row * width + column
-
-
-def _drawn(projection: Projection, footprint: torch.Tensor, pixel: torch.Tensor,
-           width: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The pairs' alphas, min(0.999, o exp(-sigma)), and the pairs kept: those at least 1/255 (with sigma >= 0)."""
-    centres = torch.stack([pixel % width, pixel // width], dim=-1).to(projection.means2d.dtype) + 0.5
-    d = centres - projection.means2d[footprint]  # (P, 2)
-    conics = projection.conics[footprint]
-    sigma = 0.5 * (conics[:, 0] * d[:, 0] * d[:, 0] + conics[:, 2] * d[:, 1] * d[:, 1]) + conics[:, 1] * d[:, 0] * d[:, 1]
-    alpha = (projection.opacities[footprint] * torch.exp(-sigma)).clamp(max=MAX_ALPHA)
-    keep = torch.nonzero((sigma.detach() >= 0) & (alpha.detach() >= MIN_ALPHA)).squeeze(1)
-    return alpha[keep], pixel[keep], footprint[keep]
+    rows = torch.where(columns > 0, (last_row - first_row + 1).clamp(min=0), 0)
+    n_spans = int(rows.sum())
+    span = torch.repeat_interleave(torch.arange(len(boxes), device=device), rows, output_size=n_spans)  # (R,) footprint
+    row = first_row.index_select(0, span) + torch.arange(n_spans, device=device) - (rows.cumsum(0) - rows).index_select(0, span)
+    span_boxes = boxes.index_select(0, span)
+    u, v, a, b, c, opacity = footprints.index_select(0, span).unbind(-1)  # (R,) each
+    dy = row.to(v.dtype) + 0.5 - v
+    with torch.no_grad():  # which columns: a choice, not a value to differentiate
+        # sigma <= log(o / (1/255)) <=> 0.5 a dx^2 + b dy dx + (0.5 c dy^2 - log(255 o)) <= 0
+        b_dy = b * dy
+        discriminant = b_dy * b_dy - a * (c * dy * dy - 2.0 * torch.log((opacity / MIN_ALPHA).clamp(min=1e-30)))
+        root = torch.sqrt(discriminant.clamp(min=0.0))
+        first = torch.ceil(u - 0.5 + (-b_dy - root) / a).clamp(-1, width).long().maximum(span_boxes[:, 0])
+        last = torch.floor(u - 0.5 + (-b_dy + root) / a).clamp(-1, width).long().minimum(span_boxes[:, 1])
+        span_columns = torch.where(discriminant >= 0, (last - first + 1).clamp(min=0), 0)
+    n_pairs = int(span_columns.sum())
+    which = torch.repeat_interleave(torch.arange(n_spans, device=device), span_columns, output_size=n_pairs)  # (P,) span
+    step = torch.arange(n_pairs, device=device) - (span_columns.cumsum(0) - span_columns).index_select(0, which)  # along it
+    dx0 = first.to(u.dtype) + 0.5 - u  # dx at the span's first drawn pixel
+    spans = torch.stack([0.5 * a, dx0, b * dy, 0.5 * c * dy * dy, opacity], dim=-1)  # (R, 5)
+    half_a, dx0, b_dy, half_c_dy2, opacity = spans.index_select(0, which).unbind(-1)  # (P,) each
+    dx = step.to(dx0.dtype) + dx0
+    sigma = (half_a * dx + b_dy) * dx + half_c_dy2
+    alpha = (opacity * torch.exp(-sigma)).clamp(max=MAX_ALPHA)
+    footprint = span.int().index_select(0, which)
+    pixel = (row * width + first).int().index_select(0, which) + step.int()
+    return footprint, pixel, alpha

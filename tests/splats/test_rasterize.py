@@ -10,7 +10,7 @@ import torch
 from kornia.geometry.camera.perspective import project_points
 
 from nerf_lightning.splats.projection import MIN_ALPHA, project
-from nerf_lightning.splats.rasterize import _drawn, _pairs, pixel_boxes, rasterize, row_bands
+from nerf_lightning.splats.rasterize import drawn_pairs, footprint_table, pixel_boxes, rasterize, row_bands
 from nerf_lightning.splats.rasterize_dense import rasterize_dense
 from nerf_lightning.splats.sh import SH_C0, rgb_to_sh, spherical_harmonics
 from tests.test_devices_and_precision import NoFloat64
@@ -74,8 +74,7 @@ def test_the_pairs_are_the_pixels_the_reference_draws():
     K, c2w = camera()
     with torch.no_grad():
         projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K, c2w, HEIGHT, WIDTH)
-        footprint, pixel = _pairs(pixel_boxes(projection, HEIGHT, WIDTH), 0, HEIGHT, WIDTH)
-        _, pixel, footprint = _drawn(projection, footprint, pixel, WIDTH)
+        footprint, pixel, _ = drawn_pairs(footprint_table(projection), pixel_boxes(projection, HEIGHT, WIDTH), 0, HEIGHT, WIDTH)
         fast = set(zip(footprint.tolist(), pixel.tolist()))
         # the reference's rule, pair by pair
         v, u = torch.meshgrid(torch.arange(HEIGHT) + 0.5, torch.arange(WIDTH) + 0.5, indexing="ij")

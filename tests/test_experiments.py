@@ -45,6 +45,8 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
     overrides = [f"experiment={experiment}", *TINY]
     if cfg.data._target_.endswith("ViewDataModule"):  # a view a step (no batch size); a few Gaussians
         overrides = [o for o in overrides if not o.startswith("data.batch_size")] + ["model.random_count=500"]
+        if cfg.data.patch_size is not None:  # patches of the tiny views
+            overrides.append("data.patch_size=8")
     if cfg.data._target_.endswith("PixelDataModule"):
         return overrides + [f"data.path={tiny_data['image']}", "data.val_steps=[1,2]"]
     overrides += [*(["data.scene.max_views=4"] if "max_views" in cfg.data.scene else []), "data.val_every=2", "data.val_views=1",

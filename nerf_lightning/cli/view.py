@@ -1,5 +1,6 @@
 """nerf-view: a trained model of a scene in the browser (extra ``viz``), rendered from the browser's camera
-(:class:`~nerf_lightning.viz.viewer.FieldViewer`)."""
+(:class:`~nerf_lightning.viz.viewer.FieldViewer`); Gaussian splats are drawn by the browser itself unless the page
+asks for rendered frames (:mod:`nerf_lightning.viz.splats`)."""
 
 from __future__ import annotations
 
@@ -34,7 +35,8 @@ def view(cfg: DictConfig) -> FieldViewer:
         require(model, RendersCamera, "nerf-view", "a model that renders a camera")
         datamodule = load_run_data(info["config"])
         viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, cfg.output_dir,
-                             moving_frame_s=cfg.view.moving_frame_s, max_resolution=cfg.view.max_resolution)
+                             moving_frame_s=cfg.view.moving_frame_s, max_resolution=cfg.view.max_resolution,
+                             max_splats=cfg.view.max_splats)
     except BaseException:
         server.stop()
         raise

@@ -22,6 +22,7 @@ from nerf_lightning.splats.gaussians import Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS, rasterize
 from nerf_lightning.splats.sh import spherical_harmonics
+from nerf_lightning.splats.start import points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
 
 log = logging.getLogger(__name__)
@@ -36,9 +37,13 @@ class SplatModule(SceneModule):
 
     Args:
         gaussians: the :class:`~nerf_lightning.splats.gaussians.Gaussians` (empty until fitting starts: they start
-            from the capture's sparse points, else ``random_count`` points uniform in a cube of half-side
-            ``random_extent`` about the origin, random colours).
-        strategy: densification (:class:`~nerf_lightning.splats.strategy.DefaultStrategy`), or None.
+            from the capture's sparse points, else from ``random_count`` random points: ``random_start="box"``
+            uniform in a cube of half-side ``random_extent`` about the origin with random colours (3DGS's start for
+            the synthetic scenes), ``"views"`` on random training pixels' rays at camera depths uniform between
+            ``random_near`` (None: the scene's near bound) and ``random_extent``, with their pixels' colours (real captures:
+            :mod:`~nerf_lightning.splats.start`)).
+        strategy: densification (:class:`~nerf_lightning.splats.strategy.DefaultStrategy` or
+            :class:`~nerf_lightning.splats.strategy.MCMCStrategy`, whose regulariser joins the loss), or None.
         optimizer: builds the optimiser (Adam, eps 1e-15) from the groups (a Hydra ``_partial_``).
         learning_rates: each parameter's learning rate (gsplat's): ``means`` (times the scene scale, decaying to
             ``means_final_ratio`` of it over ``steps``), ``log_scales``, ``quats``, ``opacity_logits``, ``sh0``, ``shN``.
@@ -49,7 +54,7 @@ class SplatModule(SceneModule):
         antialiased: Mip-Splatting's opacity compensation of the low-pass filter.
         max_pairs: (Gaussian, pixel) pairs drawn at once (:mod:`~nerf_lightning.splats.rasterize`): the memory a
             view takes, about 100 bytes a pair with gradients.
-        random_count, random_extent: the random start of a capture without sparse points.
+        random_count, random_start, random_near, random_extent: the random start of a capture without sparse points.
     """
 
     kind = "splats"
@@ -57,7 +62,8 @@ class SplatModule(SceneModule):
     def __init__(self, gaussians: Gaussians, optimizer: Callable[..., torch.optim.Optimizer], learning_rates: dict[str, float],
                  strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
-                 max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_extent: float = 1.3) -> None:
+                 max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
+                 random_extent: float = 1.3) -> None:
         super().__init__(optimizer, scheduler)
         missing = {"means", "log_scales", "quats", "opacity_logits", "sh0", "shN"} - set(learning_rates)
         if missing:
@@ -66,7 +72,9 @@ class SplatModule(SceneModule):
         self.learning_rates = dict(learning_rates)
         self.steps, self.means_final_ratio, self.sh_degree_interval = steps, means_final_ratio, sh_degree_interval
         self.ssim_weight, self.antialiased, self.max_pairs = ssim_weight, antialiased, max_pairs
-        self.random_count, self.random_extent = random_count, random_extent
+        if random_start not in ("box", "views"):
+            raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")
+        self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int] | None = None
 
@@ -100,10 +108,18 @@ class SplatModule(SceneModule):
             log.info("Gaussians start from the capture's %d sparse points", len(points))
             self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
             return
-        log.info("the capture has no sparse points: %d Gaussians start uniform in [-%g, %g]^3 with random colours",
-                 self.random_count, self.random_extent, self.random_extent)
-        positions = (torch.rand(self.random_count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
-        self.gaussians.initialise(positions, torch.rand(self.random_count, 3, generator=generator), generator)
+        if self.random_start == "views":
+            near = float(scene.near) if self.random_near is None else self.random_near
+            far = min(float(scene.far), self.random_extent)
+            log.info("the capture has no sparse points: %d Gaussians start on random training pixels' rays at depths "
+                     "%g to %g, with their pixels' colours", self.random_count, near, far)
+            positions, colours = points_seen_by_views(scene.train, near, far, self.random_count, generator)
+        else:
+            log.info("the capture has no sparse points: %d Gaussians start uniform in [-%g, %g]^3 with random colours",
+                     self.random_count, self.random_extent, self.random_extent)
+            positions = (torch.rand(self.random_count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
+            colours = torch.rand(self.random_count, 3, generator=generator)
+        self.gaussians.initialise(positions, colours, generator)
 
     def parameter_groups(self) -> list[dict[str, Any]]:
         """One group a parameter at its own learning rate; the means' scaled by the scene and decaying exponentially."""
@@ -165,6 +181,9 @@ class SplatModule(SceneModule):
         loss = (1.0 - self.ssim_weight) * l1 + self.ssim_weight * (1.0 - ssim)
         if not loss.requires_grad:  # the view saw no Gaussian: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
+        regulariser = None if self.strategy is None else self.strategy.loss(self.gaussians)  # MCMC's
+        if regulariser is not None:
+            loss = loss + regulariser
         self.log("train/loss", loss, on_step=True, on_epoch=False)
         self.log("train/psnr", mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)), on_step=True, prog_bar=True)
         self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
@@ -178,4 +197,13 @@ class SplatModule(SceneModule):
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         self._drawn = None
         if self.strategy is not None:
-            self.strategy.after_step(self.gaussians, self.global_step, self.replace_parameter)
+            self.strategy.after_step(self.gaussians, self.global_step, self.replace_parameter, self.means_lr())
+
+    def means_lr(self) -> float:
+        """The means' learning rate this step (their optimiser group's, as its schedule has it; before the optimiser is
+        built, the configured rate times the scene scale): MCMC scales its noise by it."""
+        for optimizer in (self._trainer.optimizers if self._trainer is not None else []):
+            for group in optimizer.param_groups:
+                if group.get("name") == "means":
+                    return float(group["lr"])
+        return self.learning_rates["means"] * float(self.scene_scale)

@@ -44,12 +44,23 @@ def _mesh_writer(file_type: str) -> Callable[[Any, Mapping[str, Any], Path], Pat
 
 
 def _write_splats(model: HasGaussians, options: Mapping[str, Any], output_dir: Path) -> Path:
+    """The splat PLY, in the capture's coordinates (``frame=capture``: the loader's similarity undone, so the splats
+    line up with the capture's own cameras and sparse points) or the scene's (``frame=scene``)."""
+    import torch
+
+    from nerf_lightning.splats.gaussians import transform_gaussians
     from nerf_lightning.splats.ply import write_splat_ply
 
+    frame = options.get("frame", "capture")
+    if frame not in ("capture", "scene"):
+        raise ValueError(f"export frame must be capture or scene, got '{frame}'")
     parameters = model.gaussian_parameters()
+    world_from_capture = getattr(getattr(model, "space", None), "world_from_capture", None)
+    if frame == "capture" and world_from_capture is not None:
+        parameters = transform_gaussians(parameters, torch.linalg.inv(world_from_capture.double().cpu()))
     path = write_splat_ply(output_dir / "splats.ply", **parameters)
-    log.info("wrote %s: %d Gaussians (the 3DGS layout: SuperSplat and the web splat viewers open it), in the scene's coordinates",
-             path, len(parameters["means"]))
+    log.info("wrote %s: %d Gaussians (the 3DGS layout: SuperSplat and the web splat viewers open it), in the %s's coordinates",
+             path, len(parameters["means"]), frame)
     return path
 
 

@@ -9,13 +9,14 @@ which keeps the optimiser's state in step (:func:`~nerf_lightning.models.paramet
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 
 import torch
 from torch import nn
 
 from nerf_lightning.splats.projection import inverse_sigmoid
-from nerf_lightning.splats.sh import coefficients_for, rgb_to_sh
+from nerf_lightning.splats.sh import coefficients_for, rgb_to_sh, rotate_sh
 
 log = logging.getLogger(__name__)
 
@@ -106,3 +107,34 @@ def nearest_neighbour_distances(points: torch.Tensor, k: int, chunk: int = 1024)
             nearest = torch.cat([nearest, nearest[:, -1:].expand(-1, k - nearest.shape[1])], dim=1)
         found.append(nearest)
     return torch.cat(found)
+
+
+def transform_gaussians(parameters: dict[str, torch.Tensor], matrix: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Gaussians as :meth:`~nerf_lightning.models.contract.HasGaussians.gaussian_parameters` gives them, moved by a
+    similarity ``matrix`` (4, 4) (x -> s R x + t, s > 0): means moved, rotations composed with R, log scales + log s,
+    the higher SH bands turned with R (:func:`~nerf_lightning.splats.sh.rotate_sh`); opacities and sh0 as they were.
+    Computed in float64, returned in the parameters' dtype."""
+    from kornia.geometry.conversions import rotation_matrix_to_quaternion
+
+    matrix = matrix.detach().to("cpu", torch.float64)
+    linear, translation = matrix[:3, :3], matrix[:3, 3]
+    scale = float(torch.linalg.det(linear)) ** (1.0 / 3.0)
+    rotation = linear / scale
+    if not (scale > 0 and torch.allclose(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-5)):
+        raise ValueError(f"transform_gaussians needs a similarity (a scaled rotation and a translation), got\n{matrix}")
+    dtype = parameters["means"].dtype
+    means = parameters["means"].to(torch.float64) @ linear.T + translation
+    turn = rotation_matrix_to_quaternion(rotation[None])[0]  # (w, x, y, z)
+    quats = quaternion_product(turn.expand(len(means), 4), torch.nn.functional.normalize(parameters["quats"].to(torch.float64), dim=-1))
+    out = dict(parameters)
+    out.update(means=means.to(dtype), quats=quats.to(dtype), log_scales=(parameters["log_scales"] + math.log(scale)).to(dtype),
+               shN=rotate_sh(parameters["shN"].to(torch.float64), rotation).to(dtype))
+    return out
+
+
+def quaternion_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(N, 4) x (N, 4) -> (N, 4) Hamilton products a b of (w, x, y, z) quaternions: the rotation b, then a."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], dim=-1)

@@ -2,8 +2,11 @@
 
 The scene: the training cameras as frustums showing their images (click one to look through it), the render path in
 orange, and whatever the model offers to draw (:class:`~nerf_lightning.models.contract.ShowsOverlays`: a checkbox
-each; none for a model that offers nothing). The controls: what to show (rgb, depth, accumulation), the largest
-height of a frame, the render path and its Render-to-GIF button, a line on the last frame and one on training.
+each; none for a model that offers nothing), and, for a model of Gaussians
+(:class:`~nerf_lightning.models.contract.HasGaussians`), the Gaussians themselves drawn by the browser
+(:mod:`nerf_lightning.viz.splats`). The controls: what draws the view of a model of Gaussians (the browser's splats,
+or rendered frames), what a frame shows (rgb, depth, accumulation), the largest height of a frame, the render path
+and its Render-to-GIF button, a line on the last frame (or the splats) and one on training.
 
 The page renders nothing: it tells its owner what changed through the callbacks it is given.
 """
@@ -18,10 +21,15 @@ import torch
 
 from nerf_lightning.data.scene_data import RENDER_PATHS
 from nerf_lightning.data.scene import Views
-from nerf_lightning.models.contract import Overlay, ShowsOverlays
+from nerf_lightning.models.contract import HasGaussians, Overlay, ShowsOverlays
+from nerf_lightning.viz.splats import SplatArrays
 from nerf_lightning.viz.viser_view import add_training_cameras, scene_frame
 
 OUTPUTS = ("rgb", "depth", "accumulation")
+# what draws the view of a model of Gaussians: the browser itself (viser's splats, degree-0 colours), or the model's
+# renders (every colour band, depth and accumulation), as for any other model
+SPLATS, FRAMES = "browser splats", "rendered frames"
+DRAWN_BY = (SPLATS, FRAMES)
 PATHS = RENDER_PATHS
 PATH_COLOUR = (230, 140, 20)
 
@@ -31,19 +39,28 @@ class ViewerPage:
 
     Args:
         server: a ``viser.ViserServer``.
-        model: asked for its overlays when it is :class:`~nerf_lightning.models.contract.ShowsOverlays`, nothing else.
+        model: asked for its overlays when it is :class:`~nerf_lightning.models.contract.ShowsOverlays`; a
+            :class:`~nerf_lightning.models.contract.HasGaussians` gets the "Drawn by" control (its splats are drawn
+            through :meth:`draw_splats`, by the owner).
         train_views: the training cameras and images, drawn as frustums; where the view starts.
         render_views: ``(path, frames) -> Views``, the cameras of a render path (a DataModule's ``render_views``).
         max_resolution: the initial value of the "Max height" slider.
         on_view_changed: called when what a frame shows changes (the output, the largest height).
         on_render_path: called with (path, frames, scale) when the Render-to-GIF button is pressed.
+        on_drawn_by_changed: called when "Drawn by" changes (a model of Gaussians), after the page has shown or
+            hidden the splats.
     """
 
     def __init__(self, server, model, train_views: Views, render_views: Callable[[str, int], Views], max_resolution: int,
-                 on_view_changed: Callable[[], None], on_render_path: Callable[[str, int, float], None]) -> None:
+                 on_view_changed: Callable[[], None], on_render_path: Callable[[str, int, float], None],
+                 on_drawn_by_changed: Callable[[], None] | None = None) -> None:
         self.server, self.model, self.train_views, self.render_views = server, model, train_views, render_views
         self._on_view_changed, self._on_render_path = on_view_changed, on_render_path
+        self._on_drawn_by_changed = on_drawn_by_changed
         self.overlay_handles: dict[str, object] = {}
+        self.has_gaussians = isinstance(model, HasGaussians)
+        self.splat_handle = None  # the browser's splats, once drawn (draw_splats)
+        self.splats_text = "the Gaussians are on their way"
         self._build_scene()
         self._build_gui(max_resolution)
 
@@ -65,9 +82,11 @@ class ViewerPage:
     def _build_gui(self, max_resolution: int) -> None:
         gui = self.server.gui
         with gui.add_folder("View"):
-            self.output = gui.add_dropdown("Show", OUTPUTS, initial_value="rgb")
+            # None for a model without Gaussians: its view is always rendered frames
+            self.drawn_by = gui.add_dropdown("Drawn by", DRAWN_BY, initial_value=SPLATS) if self.has_gaussians else None
+            self.output = gui.add_dropdown("Show", OUTPUTS, initial_value="rgb", disabled=self.splats_drawn)
             self.max_resolution = gui.add_slider("Max height (px)", min=32, max=2048, step=16, initial_value=min(2048, max_resolution))
-            self.stats = gui.add_markdown("waiting for the first frame")
+            self.stats = gui.add_markdown(self.splats_text if self.splats_drawn else "waiting for the first frame")
         names = self.model.overlay_names() if isinstance(self.model, ShowsOverlays) else {}
         with gui.add_folder("Scene"):
             self.show_cameras = gui.add_checkbox("Training cameras", initial_value=True)
@@ -82,6 +101,8 @@ class ViewerPage:
 
         for control in (self.output, self.max_resolution):
             control.on_update(lambda _: self._on_view_changed())
+        if self.drawn_by is not None:
+            self.drawn_by.on_update(lambda _: self._drawn_by_chosen())
         self.show_cameras.on_update(lambda _: self.set_cameras_visible(self.show_cameras.value))
         for name, box in self.overlay_boxes.items():
             box.on_update(lambda _, name=name: self.draw_overlay(name))
@@ -91,6 +112,36 @@ class ViewerPage:
         self.draw_path()
 
     # -- the scene -----------------------------------------------------------------------------------------------
+
+    @property
+    def splats_drawn(self) -> bool:
+        """The browser draws the model's Gaussians itself (a model of Gaussians, "Drawn by" its splats): no frame is
+        rendered for the view."""
+        return self.drawn_by is not None and self.drawn_by.value == SPLATS
+
+    def draw_splats(self, arrays: SplatArrays) -> None:
+        """Send the Gaussians ``arrays`` to the browsers under ``/splats`` (replacing those sent before; shown while
+        "Drawn by" is the splats) and say in the page how many are drawn."""
+        if arrays.shown == 0:
+            if self.splat_handle is not None:
+                self.splat_handle.remove()
+                self.splat_handle = None
+        else:
+            self.splat_handle = self.server.scene.add_gaussian_splats(
+                "/splats", centers=arrays.centers, covariances=arrays.covariances, rgbs=arrays.rgbs,
+                opacities=arrays.opacities, visible=self.splats_drawn)
+        self.splats_text = arrays.describe()
+        if self.splats_drawn:
+            self.stats.content = self.splats_text
+
+    def _drawn_by_chosen(self) -> None:
+        splats = self.splats_drawn
+        if self.splat_handle is not None:
+            self.splat_handle.visible = splats
+        self.output.disabled = splats  # what a frame shows: no frame while the browser draws the splats
+        self.stats.content = self.splats_text if splats else "waiting for the first frame"
+        if self._on_drawn_by_changed is not None:
+            self._on_drawn_by_changed()
 
     def set_cameras_visible(self, visible: bool) -> None:
         for frustum in self.frustums:

@@ -1,0 +1,167 @@
+"""The MCMC strategy (3DGS as Markov chain Monte Carlo): relocation keeps the count and what the views see, growth
+stays under the cap, the optimiser's state follows the edits, the noise moves only the transparent, and a short run
+on the procedural scene learns with it."""
+
+from __future__ import annotations
+
+import math
+
+import lightning as L
+import pytest
+import torch
+
+from nerf_lightning.models.parameters import replace_parameter
+from nerf_lightning.splats.gaussians import PARAMETERS
+from nerf_lightning.splats.strategy import DefaultStrategy, MCMCStrategy, relocation
+from nerf_lightning.training import train
+from tests.models.test_splat import QUICK, gaussians_for
+
+
+def stepped_optimizer(g):
+    """Adam over every parameter, stepped once so that its state is not zero."""
+    optimizer = torch.optim.Adam([getattr(g, name) for name in PARAMETERS], lr=1e-3)
+    (sum((getattr(g, name) ** 2).sum() for name in PARAMETERS)).backward()
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+    return optimizer, lambda owner, name, value, rows_from: replace_parameter(owner, name, value, [optimizer], rows_from)
+
+
+def scale_share(opacity: float, copies: int) -> float:
+    """The factor of the scales by the paper's eq. 9 as gsplat's kernel writes it (the double sum), in Python floats."""
+    shared = 1.0 - (1.0 - opacity) ** (1.0 / copies)
+    total = sum(math.comb(i - 1, k) * (-1) ** k * shared ** (k + 1) / math.sqrt(k + 1) for i in range(1, copies + 1) for k in range(i))
+    return opacity / total
+
+
+def test_relocation_moves_the_dead_onto_the_live_and_they_render_as_the_source_did():
+    g = gaussians_for(200)
+    with torch.no_grad():
+        g.opacity_logits[:] = torch.logit(torch.linspace(0.2, 0.9, 200))
+        g.opacity_logits[::4] = -8.0  # 50 dead
+    optimizer, replace = stepped_optimizer(g)
+    before = {name: getattr(g, name).detach().clone() for name in PARAMETERS}
+    dead = torch.sigmoid(before["opacity_logits"]) < 0.005
+    old_state = {name: optimizer.state[getattr(g, name)]["exp_avg"].clone() for name in PARAMETERS}
+
+    assert MCMCStrategy().relocate(g, replace) == 50
+    assert len(g) == 200
+    after = {name: getattr(g, name).detach() for name in PARAMETERS}
+    # every dead row is now a copy of a live row (the same mean, rotation, colour, and the shared opacity and scales)
+    sources = []
+    for row in torch.nonzero(dead).squeeze(1).tolist():
+        same = (after["means"] == after["means"][row]).all(dim=-1) & ~dead
+        assert int(same.sum()) == 1, row
+        source = int(torch.nonzero(same)[0])
+        for name in PARAMETERS:
+            torch.testing.assert_close(after[name][row], after[name][source], rtol=0, atol=0)
+        sources.append(source)
+    assert float(torch.sigmoid(after["opacity_logits"]).min()) >= 0.005
+    # a source drawn k times and its k copies: 1 - (1 - o')^(k + 1) = o, and the scales shared as eq. 9 says
+    for source in set(sources):
+        copies = sources.count(source) + 1
+        opacity = float(torch.sigmoid(before["opacity_logits"][source]))
+        shared = float(torch.sigmoid(after["opacity_logits"][source]))
+        assert 1.0 - (1.0 - shared) ** copies == pytest.approx(opacity, rel=1e-5)
+        torch.testing.assert_close(after["log_scales"][source], before["log_scales"][source] + math.log(scale_share(opacity, copies)))
+    # the rows it did not touch are as they were, their optimiser state too; the touched rows' state is zero
+    touched = dead.clone()
+    touched[sources] = True
+    for name in PARAMETERS:
+        torch.testing.assert_close(after[name][~touched], before[name][~touched], rtol=0, atol=0)
+        state = optimizer.state[getattr(g, name)]
+        assert state["exp_avg"].shape == getattr(g, name).shape
+        assert state["exp_avg"][touched].abs().max() == 0 and state["exp_avg_sq"][touched].abs().max() == 0
+        torch.testing.assert_close(state["exp_avg"][~touched], old_state[name][~touched])
+
+
+def test_the_shared_opacity_and_scales_match_the_papers_formula():
+    opacities = torch.tensor([0.01, 0.3, 0.5, 0.9, 0.999, 0.5])
+    copies = torch.tensor([2, 3, 1, 10, 51, 80])  # more than 51 copies are shared as 51
+    shared, scales = relocation(opacities, torch.ones(6, 3), copies)
+    for index, (opacity, n) in enumerate(zip(opacities.tolist(), [2, 3, 1, 10, 51, 51])):
+        assert 1.0 - (1.0 - float(shared[index])) ** n == pytest.approx(opacity, rel=1e-5)
+        assert float(scales[index, 0]) == pytest.approx(scale_share(opacity, n), rel=1e-4)
+    assert scales[2].tolist() == [1.0, 1.0, 1.0]  # one copy: the Gaussian itself
+
+
+def test_growth_adds_at_most_five_percent_and_never_passes_the_cap():
+    g = gaussians_for(100)
+    _, replace = stepped_optimizer(g)
+    strategy = MCMCStrategy(cap_max=112)
+    assert strategy.grow(g, replace) == 5 and len(g) == 105
+    assert strategy.grow(g, replace) == 5 and len(g) == 110
+    assert strategy.grow(g, replace) == 2 and len(g) == 112  # 5% would pass the cap
+    assert strategy.grow(g, replace) == 0 and len(g) == 112
+    # an experiment's max_count (the default strategy's cap) caps it too
+    assert MCMCStrategy(cap_max=1000, max_count=500, reset_every=100).cap_max == 500
+
+
+def test_a_refinement_keeps_every_optimiser_state_the_size_of_its_parameter():
+    g = gaussians_for(200)
+    with torch.no_grad():
+        g.opacity_logits[150:] = -8.0  # 50 dead
+    optimizer, replace = stepped_optimizer(g)
+    strategy = MCMCStrategy(refine_start=100, refine_every=100)
+    strategy.after_step(g, step=50, replace=replace, means_lr=0.0)  # not yet time
+    assert len(g) == 200 and float(torch.sigmoid(g.opacity_logits.detach()).min()) < 0.005
+    strategy.after_step(g, step=100, replace=replace, means_lr=0.0)
+    assert len(g) == 210 and float(torch.sigmoid(g.opacity_logits.detach()).min()) >= 0.005
+    for name in PARAMETERS:
+        parameter = getattr(g, name)
+        state = optimizer.state[parameter]
+        assert state["exp_avg"].shape == parameter.shape and state["exp_avg_sq"].shape == parameter.shape
+        assert any(parameter is p for group in optimizer.param_groups for p in group["params"])
+        assert state["exp_avg"][150:].abs().max() == 0  # the relocated rows and the added ones start afresh
+
+
+def test_the_noise_moves_transparent_gaussians_and_leaves_opaque_ones():
+    g = gaussians_for(200)
+    with torch.no_grad():
+        g.log_scales.fill_(math.log(0.1))
+        g.opacity_logits[:100] = torch.logit(torch.tensor(0.001))
+        g.opacity_logits[100:] = torch.logit(torch.tensor(0.9))
+    before = g.means.detach().clone()
+    parameter = g.means
+    MCMCStrategy().after_step(g, step=1, replace=None, means_lr=1.6e-4)  # step 1: no refinement, only noise
+    moved = (g.means.detach() - before).norm(dim=-1)
+    assert g.means is parameter  # in place: the optimiser keeps the parameter
+    # noise 0.01 (the covariance) x 1.6e-4 x 5e5 x 0.6 (the gate at 0.001) a coordinate: about 0.8 for the transparent
+    assert 0.3 < float(moved[:100].mean()) < 3.0
+    assert float(moved[100:].max()) < 1e-6
+    now = g.means.detach().clone()
+    MCMCStrategy().after_step(g, step=1, replace=None, means_lr=0.0)  # no learning rate: no noise
+    assert torch.equal(g.means.detach(), now)
+
+
+def test_the_regulariser_is_the_mean_opacity_and_scale_and_the_default_strategy_has_none():
+    g = gaussians_for(50)
+    loss = MCMCStrategy(opacity_reg=0.01, scale_reg=0.02).loss(g)
+    expected = 0.01 * torch.sigmoid(g.opacity_logits).mean() + 0.02 * torch.exp(g.log_scales).mean()
+    torch.testing.assert_close(loss, expected)
+    assert loss.requires_grad
+    assert MCMCStrategy(opacity_reg=0.0, scale_reg=0.0).loss(g) is None
+    assert DefaultStrategy().loss(g) is None
+
+
+class FirstStepPSNR(L.Callback):
+    """Keeps train/psnr after the first step (the starting cloud's, near enough)."""
+
+    values: list[float] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == 1:
+            FirstStepPSNR.values.append(float(trainer.callback_metrics["train/psnr"]))
+
+
+def test_a_short_mcmc_run_on_the_procedural_scene_learns_and_keeps_under_the_cap(make_config, scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    monkeypatch.setattr(FirstStepPSNR, "values", [])
+    # refinements at 40, 80, 120, 160: 3000 -> 3150 -> 3300 (the cap), then relocation only
+    cfg = make_config(*QUICK, "model/strategy=mcmc", "trainer.max_steps=240", "data.val_every=240", "model.strategy.refine_start=40",
+                      "model.strategy.refine_every=40", "model.strategy.refine_stop=200", "model.strategy.cap_max=3300",
+                      f"+callbacks.first_step_psnr._target_={__name__}.FirstStepPSNR")
+    metrics = train(cfg)
+    # the first step scores about 9 dB; 240 steps about 17 on the held-out views
+    assert len(FirstStepPSNR.values) == 1 and FirstStepPSNR.values[0] < 11.0, FirstStepPSNR.values
+    assert metrics["step"] == 240 and metrics["val/psnr"] > FirstStepPSNR.values[0] + 5.0, metrics
+    assert metrics["train/gaussians"] == 3300

@@ -3,6 +3,8 @@ and nerf-viz-cameras (training picks its device through Lightning's ``trainer.ac
 
 from __future__ import annotations
 
+import os
+
 import torch
 
 DEVICE_CHOICES = "auto, cpu, cuda, cuda:<index> or mps"
@@ -55,3 +57,16 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
     elif device.type == "mps":
         torch.mps.synchronize()
+
+
+def memory_of(device: torch.device) -> int | None:
+    """The bytes of memory ``device`` has: a GPU's own, the machine's RAM for the CPU (and for an Apple GPU, which
+    shares it); None where it cannot be told."""
+    if device.type == "cuda":
+        return int(torch.cuda.get_device_properties(device).total_memory)
+    if device.type == "mps" and hasattr(torch.mps, "recommended_max_memory"):
+        return int(torch.mps.recommended_max_memory())
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):  # not a POSIX system
+        return None

@@ -15,13 +15,14 @@ from typing import Any
 import kornia
 import torch
 
+from nerf_lightning.devices import memory_of
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import SceneModule
 from nerf_lightning.splats.gaussians import Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS, rasterize
-from nerf_lightning.splats.sh import spherical_harmonics
+from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
 from nerf_lightning.splats.start import points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
 
@@ -76,7 +77,7 @@ class SplatModule(SceneModule):
             raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")
         self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
         self.register_buffer("scene_scale", torch.tensor(1.0))
-        self._drawn: tuple[Projection, int, int] | None = None
+        self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
 
     # -- fitting starts: the scene's space, its scale and the Gaussians' start --------------------------------
 
@@ -97,6 +98,20 @@ class SplatModule(SceneModule):
             self.strategy.scene_scale = float(self.scene_scale)
         if len(self.gaussians) == 0 and not getattr(self.trainer, "ckpt_path", None):  # a resumed run's come from its checkpoint
             self.start_gaussians(datamodule.scene)
+        self.check_memory(self.trainer.strategy.root_device)
+
+    def check_memory(self, device: torch.device) -> None:
+        """Refuse, before training, a Gaussian count whose parameters, gradients and Adam state would take more than
+        half the device's memory (the rest is for the pairs, the images and the rest of the program)."""
+        memory = memory_of(device)
+        cap = getattr(self.strategy, "cap_max", None) or getattr(self.strategy, "max_count", None) or 0
+        count, key = (cap, "model.strategy.max_count (or cap_max)") if cap > len(self.gaussians) else \
+            (len(self.gaussians), "model.random_count (or the capture's sparse points)")
+        per_gaussian = 16 * (3 + 4 + 3 + 1 + 3 * coefficients_for(self.gaussians.sh_degree))  # 4 float32 copies
+        if memory is not None and count * per_gaussian > memory / 2:
+            raise ValueError(f"{key} = {count} Gaussians would take about {count * per_gaussian / 2**30:.1f} GiB with their "
+                             f"gradients and optimiser state, more than half of the {memory / 2**30:.1f} GiB the {device.type} "
+                             f"has: lower it (or model.gaussians.sh_degree)")
 
     def use_space(self, space: SceneSpace) -> None:
         self.space = space.to(self.device)
@@ -174,7 +189,11 @@ class SplatModule(SceneModule):
         out, projection = self.draw(batch["K"], batch["c2w"], height, width)
         if projection.means2d.requires_grad:
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
-        self._drawn = (projection, width, height)
+        # the strategy reads gradients as of a whole view: a patch's loss, a mean over fewer pixels, gives each of its
+        # Gaussians (whole view / patch) times the gradient the whole view would, and would grow far too many
+        views = getattr(getattr(getattr(self, "_trainer", None), "datamodule", None), "scene", None)
+        full_height, full_width = (views.train.height, views.train.width) if views is not None else (height, width)
+        self._drawn = (projection, full_width, full_height, height * width / (full_height * full_width))
         rgb = out["rgb"]
         l1 = (rgb - image).abs().mean()
         ssim = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11).mean()
@@ -191,7 +210,9 @@ class SplatModule(SceneModule):
 
     def on_after_backward(self) -> None:
         if self.strategy is not None and self._drawn is not None:
-            projection, width, height = self._drawn
+            projection, width, height, share = self._drawn
+            if share != 1.0 and projection.means2d.grad is not None:
+                projection.means2d.grad.mul_(share)
             self.strategy.after_backward(self.gaussians, projection, width, height)
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:

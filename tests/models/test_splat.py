@@ -105,6 +105,15 @@ def test_splats_refuse_rays_and_a_contracted_space_by_name(make_config, scene_ca
         train(make_config(*QUICK, "data.contract=true", "trainer.max_steps=1"))
 
 
+def test_a_gaussian_cap_over_the_machines_memory_is_refused_naming_the_cap(make_config, scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    with pytest.raises(ValueError, match=r"model.strategy.max_count \(or cap_max\) = 100000000000 Gaussians would take about"):
+        train(make_config(*QUICK, "model.strategy.max_count=100000000000", "trainer.max_steps=1"))
+    with pytest.raises(ValueError, match=r"model.strategy.max_count \(or cap_max\) = 100000000000 Gaussians"):
+        train(make_config(*QUICK, "model/strategy=mcmc", "model.strategy.cap_max=100000000000", "model.strategy.max_count=null",
+                          "trainer.max_steps=1"))
+
+
 
 def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():
     positions = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0], [10.0, 10.0, 10.0]])

@@ -25,7 +25,8 @@ def test_the_cpu_quick_suite_has_a_row_that_needs_no_data():
 
 def test_rows_are_selected_by_glob_on_their_id():
     suite = load_suite("cpu")
-    assert [row.id for row in suite.select(["fern/*"])] == ["fern/nerfacto_forward_cpu/10min/seed0"]
+    assert [row.id for row in suite.select(["fern/*"])] == ["fern/nerfacto_forward_cpu/10min/seed0", "fern/splat_forward_cpu/10min/seed0"]
+    assert [row.id for row in suite.select(["*/nerfacto_forward_cpu/*"])] == ["fern/nerfacto_forward_cpu/10min/seed0"]
     assert len(suite.select(None)) == len(suite.rows)
     with pytest.raises(SuiteError, match="matches no row of suite 'cpu'; its rows: lego/fast_blender"):
         suite.select(["chair/*"])

@@ -124,3 +124,37 @@ def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():
     torch.testing.assert_close(smaller.log_scales.detach(), full.log_scales.detach() + math.log(0.25))
     with pytest.raises(ValueError, match="initial_scale must be > 0"):
         Gaussians(initial_scale=0.0)
+
+
+def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(procedural_scene, make_config, tmp_path, caplog):
+    """A transforms.json capture naming its sparse points (as nerf-process-data writes it): one Gaussian a point, at
+    the point in the scene's world, of the point's colour; said once in the log; then it trains."""
+    import json
+    import logging
+
+    from hydra.utils import instantiate
+
+    from nerf_lightning.data.capture.process import write_points_ply
+    from nerf_lightning.data.formats import load_transforms
+    from nerf_lightning.splats.sh import SH_C0
+    from tests.data.test_points import surface_points
+    from tests.data.test_transforms import write_transforms
+
+    views = procedural_scene.train.subset(list(range(8)))
+    root = write_transforms(views, tmp_path / "capture")
+    points, colours = surface_points(views)
+    write_points_ply(root / "sparse_pc.ply", points, colours)
+    meta = json.loads((root / "transforms.json").read_text())
+    (root / "transforms.json").write_text(json.dumps({**meta, "ply_file_path": "sparse_pc.ply"}))
+    scene = load_transforms(root, holdout_every=4)
+
+    cfg = make_config("experiment=splat_360_cpu", f"data.root={root}", "data.scene.downscale=1", "trainer.max_steps=3",
+                      "data.val_every=null", "trainer.enable_progress_bar=false")
+    model = instantiate(cfg.model)
+    with caplog.at_level(logging.INFO, logger="nerf_lightning.models.splat"):
+        model.start_gaussians(scene)
+    assert "Gaussians start from the capture's 300 sparse points" in caplog.text and "no sparse points" not in caplog.text
+    torch.testing.assert_close(model.gaussians.means.detach(), scene.points.positions)
+    torch.testing.assert_close(0.5 + SH_C0 * model.gaussians.sh0.detach()[:, 0], scene.points.colours.float() / 255.0, atol=1e-6, rtol=0)
+    metrics = train(cfg)
+    assert metrics["step"] == 3 and metrics["train/gaussians"] == 300

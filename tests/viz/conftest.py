@@ -2,6 +2,7 @@
 
 import shutil
 import socket
+import threading
 import time
 
 import pytest
@@ -36,3 +37,13 @@ def browser():
         chromium = driver.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"])
         yield chromium
         chromium.close()
+
+
+def open_page(browser, viewer, port: int, size: tuple[int, int] = (800, 600)):
+    """Serve ``viewer`` (a FieldViewer) on a daemon thread, open its page in ``browser`` and wait for it to connect:
+    -> (the page, the client's id)."""
+    threading.Thread(target=viewer.serve_forever, daemon=True).start()
+    page = browser.new_page(viewport={"width": size[0], "height": size[1]})
+    page.goto(f"http://127.0.0.1:{port}/")
+    wait_for(lambda: len(viewer.server.get_clients()) == 1, what="the page to connect")
+    return page, next(iter(viewer.server.get_clients()))

@@ -12,7 +12,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -28,7 +27,7 @@ from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.viz.scheduler import BrowserCamera, RenderScheduler, browser_camera, progressive_heights
 from nerf_lightning.viz.viser_view import check_port
-from tests.viz.conftest import free_port, needs_browser, wait_for
+from tests.viz.conftest import free_port, needs_browser, open_page, wait_for
 
 
 # a short run of the fast preset: 150 steps, a 32^3 occupancy grid
@@ -418,13 +417,8 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
     model, info = load_model(trained["ckpt"], "cpu")
     datamodule = load_run_data(info["config"])
     viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, tmp_path / "renders", max_resolution=256)
-    loop = threading.Thread(target=viewer.serve_forever, daemon=True)
-    loop.start()
     try:
-        page = browser.new_page(viewport={"width": 800, "height": 600})
-        page.goto(f"http://127.0.0.1:{port}/")
-        wait_for(lambda: len(viewer.server.get_clients()) == 1, what="the page to connect")
-        client_id = next(iter(viewer.server.get_clients()))
+        page, client_id = open_page(browser, viewer, port)
         viewer.page.show_cameras.value = False  # the frustums show the training images: keep them out of the picture
         viewer.page.set_cameras_visible(False)
         wait_for(lambda: viewer.scheduler.settled(client_id), what="the first view to be refined")

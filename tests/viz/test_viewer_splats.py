@@ -5,7 +5,6 @@ the page in headless Debian chromium (Playwright)."""
 from __future__ import annotations
 
 import math
-import threading
 import time
 from types import SimpleNamespace
 
@@ -13,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.viz.conftest import free_port, needs_browser, wait_for
+from tests.viz.conftest import free_port, needs_browser, open_page, wait_for
 
 QUICK = ["experiment=splat_procedural", "data.scene.size=32", "model.random_count=3000"]
 VIEW = 3  # the training camera the Gaussians are placed in front of
@@ -276,13 +275,8 @@ def test_the_browser_draws_the_splats_where_the_rendered_frames_show_them(browse
     server = start_server("127.0.0.1", port)
     viewer = FieldViewer(server, model, train, lambda path, frames: train.subset([0, 1]), tmp_path / "renders", max_resolution=256)
     viewer.page.show_cameras.value = False  # the frustums show the training images: keep them out of the picture
-    loop = threading.Thread(target=viewer.serve_forever, daemon=True)
-    loop.start()
     try:
-        page = browser.new_page(viewport={"width": 800, "height": 600})
-        page.goto(f"http://127.0.0.1:{port}/")
-        wait_for(lambda: len(viewer.server.get_clients()) == 1, what="the page to connect")
-        client_id = next(iter(viewer.server.get_clients()))
+        page, client_id = open_page(browser, viewer, port)
         shots = {}
 
         def shows(name: str) -> bool:

@@ -219,7 +219,7 @@ class SceneSpace(nn.Module):
         if self.ndc is not None:
             points = self.ndc.to_world(points)
         if self.world_from_capture is not None:
-            capture_from_world = torch.linalg.inv(self.world_from_capture.double().cpu())
+            capture_from_world = torch.linalg.inv(self.world_from_capture.cpu().double())  # Apple GPUs have no float64
             points = kornia.geometry.transform_points(capture_from_world[None], points.cpu()[None])[0]
         return points
 

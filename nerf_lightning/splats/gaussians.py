@@ -113,13 +113,15 @@ def transform_gaussians(parameters: dict[str, torch.Tensor], matrix: torch.Tenso
     """Gaussians as :meth:`~nerf_lightning.models.contract.HasGaussians.gaussian_parameters` gives them, moved by a
     similarity ``matrix`` (4, 4) (x -> s R x + t, s > 0): means moved, rotations composed with R, log scales + log s,
     the higher SH bands turned with R (:func:`~nerf_lightning.splats.sh.rotate_sh`); opacities and sh0 as they were.
-    Computed in float64, returned in the parameters' dtype."""
+    Computed in float64 on the CPU, returned there in the parameters' dtype."""
     from kornia.geometry.conversions import rotation_matrix_to_quaternion
 
-    matrix = matrix.detach().to("cpu", torch.float64)
+    matrix = matrix.detach().cpu().to(torch.float64)
+    parameters = {name: value.detach().cpu() for name, value in parameters.items()}
     linear, translation = matrix[:3, :3], matrix[:3, 3]
-    scale = float(torch.linalg.det(linear)) ** (1.0 / 3.0)
-    rotation = linear / scale
+    determinant = float(torch.linalg.det(linear))
+    scale = determinant ** (1.0 / 3.0) if determinant > 0 else 0.0  # a mirror (or a collapse) is no similarity
+    rotation = linear / scale if scale > 0 else linear
     if not (scale > 0 and torch.allclose(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), atol=1e-5)):
         raise ValueError(f"transform_gaussians needs a similarity (a scaled rotation and a translation), got\n{matrix}")
     dtype = parameters["means"].dtype

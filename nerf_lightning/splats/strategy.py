@@ -151,7 +151,7 @@ class MCMCStrategy:
       views do not need fade (and are relocated) and stay small.
 
     The count starts as the Gaussians start (the sparse points, or the random cloud) and only grows: ``cap_max``
-    is the size the user wants, and memory is about 250 bytes a Gaussian with the optimiser's state.
+    is the size the user wants, and memory is about 1 KB a Gaussian at SH degree 3 with its gradients and Adam state.
 
     Args:
         max_count, reset_every: :class:`DefaultStrategy`'s keys, taken so that an experiment written for it

@@ -70,9 +70,10 @@ def test_rotated_sh_seen_along_the_turned_direction_is_the_old_colour():
     assert not torch.allclose(turned, g["shN"], atol=1e-2)
 
 
-def test_a_transform_that_is_not_a_similarity_is_refused():
+@pytest.mark.parametrize("stretch", [2.0, -1.0], ids=["stretched", "mirrored"])
+def test_a_transform_that_is_not_a_similarity_is_refused(stretch):
     matrix = torch.eye(4, dtype=torch.float64)
-    matrix[0, 0] = 2.0
+    matrix[0, 0] = stretch
     with pytest.raises(ValueError, match="similarity"):
         transform_gaussians(splats(), matrix)
 

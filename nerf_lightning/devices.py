@@ -4,6 +4,7 @@ and nerf-viz-cameras (training picks its device through Lightning's ``trainer.ac
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import torch
 
@@ -73,7 +74,7 @@ def memory_of(device: torch.device) -> int | None:
     # in a container or a SLURM job the cgroup's limit, not the host's RAM, is what the process may use
     for limit in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
         try:
-            text = open(limit).read().strip()
+            text = Path(limit).read_text().strip()
         except OSError:
             continue
         if text.isdigit():

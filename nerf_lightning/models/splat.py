@@ -19,7 +19,7 @@ from nerf_lightning.devices import memory_of
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import SceneModule
-from nerf_lightning.splats.gaussians import Gaussians
+from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS, rasterize
 from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
@@ -66,7 +66,7 @@ class SplatModule(SceneModule):
                  max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
                  random_extent: float = 1.3) -> None:
         super().__init__(optimizer, scheduler)
-        missing = {"means", "log_scales", "quats", "opacity_logits", "sh0", "shN"} - set(learning_rates)
+        missing = set(PARAMETERS) - set(learning_rates)
         if missing:
             raise ValueError(f"model.learning_rates needs a rate for {', '.join(sorted(missing))}")
         self.gaussians, self.strategy = gaussians, strategy
@@ -78,6 +78,7 @@ class SplatModule(SceneModule):
         self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
+        self.view_size: tuple[int, int] | None = None  # a whole training view's height and width (set by setup)
 
     # -- fitting starts: the scene's space, its scale and the Gaussians' start --------------------------------
 
@@ -92,6 +93,7 @@ class SplatModule(SceneModule):
         if space.ndc is not None or space.contraction is not None:
             raise ValueError("Gaussian splats live in the scene's own world: data.ndc and data.contract must be false for model=splat")
         self.use_space(space)
+        self.view_size = (datamodule.scene.train.height, datamodule.scene.train.width)
         centres = datamodule.scene.train.c2w[:, :3, 3]
         self.scene_scale.fill_(1.1 * float((centres - centres.mean(dim=0)).norm(dim=-1).max()))
         if self.strategy is not None:
@@ -142,7 +144,7 @@ class SplatModule(SceneModule):
         decay = self.means_final_ratio ** (1.0 / max(self.steps, 1))
         return [
             {"name": "means", "params": [g.means], "lr": rates["means"] * float(self.scene_scale), "schedule": lambda step: decay**step},
-            *({"name": name, "params": [getattr(g, name)], "lr": rates[name]} for name in ("log_scales", "quats", "opacity_logits", "sh0", "shN")),
+            *({"name": name, "params": [getattr(g, name)], "lr": rates[name]} for name in PARAMETERS if name != "means"),
         ]
 
     # -- drawing a camera ------------------------------------------------------------------------------------
@@ -178,8 +180,7 @@ class SplatModule(SceneModule):
     def gaussian_parameters(self) -> dict[str, torch.Tensor]:
         """The Gaussians as 3DGS stores them (the contract's :class:`~nerf_lightning.models.contract.HasGaussians`):
         means (N, 3) in the scene's world, quats, log_scales, opacity_logits, sh0 (N, 1, 3), shN (N, K - 1, 3)."""
-        g = self.gaussians
-        return {name: getattr(g, name).detach() for name in ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")}
+        return {name: getattr(self.gaussians, name).detach() for name in PARAMETERS}
 
     # -- training and validation ----------------------------------------------------------------------------------
 
@@ -191,8 +192,7 @@ class SplatModule(SceneModule):
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
         # the strategy reads gradients as of a whole view: a patch's loss, a mean over fewer pixels, gives each of its
         # Gaussians (whole view / patch) times the gradient the whole view would, and would grow far too many
-        views = getattr(getattr(getattr(self, "_trainer", None), "datamodule", None), "scene", None)
-        full_height, full_width = (views.train.height, views.train.width) if views is not None else (height, width)
+        full_height, full_width = self.view_size or (height, width)
         self._drawn = (projection, full_width, full_height, height * width / (full_height * full_width))
         rgb = out["rgb"]
         l1 = (rgb - image).abs().mean()

@@ -54,9 +54,9 @@ def _write_splats(model: HasGaussians, options: Mapping[str, Any], output_dir: P
     frame = options.get("frame", "capture")
     if frame not in ("capture", "scene"):
         raise ValueError(f"export frame must be capture or scene, got '{frame}'")
-    parameters = {name: value.detach().cpu() for name, value in model.gaussian_parameters().items()}
+    parameters = model.gaussian_parameters()
     world_from_capture = getattr(getattr(model, "space", None), "world_from_capture", None)
-    if frame == "capture" and world_from_capture is not None:  # to the CPU first: Apple GPUs have no float64
+    if frame == "capture" and world_from_capture is not None:  # on the CPU (Apple GPUs have no float64): both move there
         parameters = transform_gaussians(parameters, torch.linalg.inv(world_from_capture.cpu().double()))
     path = write_splat_ply(output_dir / "splats.ply", **parameters)
     log.info("wrote %s: %d Gaussians (the 3DGS layout: SuperSplat and the web splat viewers open it), in the %s's coordinates",

@@ -9,6 +9,8 @@ here shows the same colours in their viewers.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 SH_C0 = 0.28209479177387814
@@ -45,6 +47,12 @@ def sh_basis(degree: int, directions: torch.Tensor) -> torch.Tensor:
     return torch.stack(basis, dim=-1)
 
 
+def sh_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
+    """(..., 3) degree-0 coefficients -> (..., 3) the colour they give from every direction (:func:`rgb_to_sh`'s
+    inverse; not clamped)."""
+    return SH_C0 * sh0 + 0.5
+
+
 def spherical_harmonics(degree: int, coefficients: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
     """Colours of N Gaussians: ``coefficients`` (N, K, 3) with K >= (degree + 1)^2 (the first (degree + 1)^2 are
     used), ``directions`` (N, 3) (normalised here) -> (N, 3), clamped at 0. ``degree`` 0 to 3."""
@@ -52,7 +60,7 @@ def spherical_harmonics(degree: int, coefficients: torch.Tensor, directions: tor
         raise ValueError(f"spherical_harmonics of degree {degree} needs 0 <= degree <= 3 and (N, >= {coefficients_for(degree)}, 3) "
                          f"coefficients, got {tuple(coefficients.shape)}")
     if degree == 0:
-        return (SH_C0 * coefficients[:, 0] + 0.5).clamp(min=0.0)
+        return sh_to_rgb(coefficients[:, 0]).clamp(min=0.0)
     basis = sh_basis(degree, directions)  # (N, (degree + 1)^2)
     colour = (basis[..., None] * coefficients[:, : coefficients_for(degree)]).sum(dim=1)
     return (colour + 0.5).clamp(min=0.0)
@@ -67,7 +75,7 @@ def rotate_sh(coefficients: torch.Tensor, rotation: torch.Tensor) -> torch.Tenso
     instead of writing out Wigner's D matrices."""
     if coefficients.shape[1] == 0:
         return coefficients
-    degree = {3: 1, 8: 2, 15: 3}[coefficients.shape[1]]
+    degree = math.isqrt(coefficients.shape[1] + 1) - 1  # K - 1 = (degree + 1)^2 - 1
     directions = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=-1)
     rotation = rotation.detach().to("cpu", torch.float64)
     at_d, at_rotated = sh_basis(degree, directions), sh_basis(degree, directions @ rotation.T)  # (64, K)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from nerf_lightning.splats.projection import covariances
-from nerf_lightning.splats.sh import SH_C0
+from nerf_lightning.splats.sh import sh_to_rgb
 
 # The most Gaussians sent to a browser: each is 32 bytes in viser's buffer (32 MB a million, sent again at every
 # refresh of the live view), and the browser depth-sorts all of them whenever its camera moves; past a million or two
@@ -66,7 +66,7 @@ class SplatArrays:
 
 def dc_colours(sh0: torch.Tensor) -> torch.Tensor:
     """(N, 1, 3) degree-0 coefficients -> (N, 3) colours in [0, 1] (what every direction sees of that band)."""
-    return (0.5 + SH_C0 * sh0[:, 0]).clamp(0.0, 1.0)
+    return sh_to_rgb(sh0[:, 0]).clamp(0.0, 1.0)
 
 
 @torch.no_grad()

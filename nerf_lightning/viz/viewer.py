@@ -30,7 +30,6 @@ import torch
 
 from nerf_lightning.data.scene import Views
 from nerf_lightning.io import to_uint8
-from nerf_lightning.models.contract import HasGaussians
 from nerf_lightning.outputs.frames import depth_picture, write_path_renders
 from nerf_lightning.viz.page import OUTPUTS, ViewerPage
 from nerf_lightning.viz.scheduler import BrowserCamera, RenderScheduler
@@ -77,7 +76,6 @@ class FieldViewer:
         self.page = ViewerPage(server, model, train_views, render_views, max_resolution,
                                on_view_changed=self._view_changed, on_render_path=self._request_path,
                                on_drawn_by_changed=self._drawn_by_changed)
-        self.has_gaussians = isinstance(model, HasGaussians)
         self.splats_sent = 0  # how many times the Gaussians were sent to the browsers
         self.splats_shown = 0  # how many Gaussians the browsers were last sent
         # the model's state the splats should show (refresh_splats) and the one they show: sent when they differ
@@ -135,9 +133,14 @@ class FieldViewer:
     # -- rendering -----------------------------------------------------------------------------------------------
 
     @property
+    def has_gaussians(self) -> bool:
+        """A model of Gaussians (the page's "Drawn by" is shown for it)."""
+        return self.page.has_gaussians
+
+    @property
     def splats_due(self) -> bool:
         """The browser draws the splats, and they are older than the model (or not sent yet)."""
-        return self.has_gaussians and self.page.splats_drawn and self._splats_drawn != self._splats_wanted
+        return self.page.splats_drawn and self._splats_drawn != self._splats_wanted
 
     def refresh_splats(self, stamp: object) -> None:
         """The model is now as of ``stamp`` (the live view: the training step): the splats are sent again at the next
@@ -167,7 +170,7 @@ class FieldViewer:
             self._render_path(*self._path_request)
             self._path_request = None
             return time.perf_counter() - started
-        if self.has_gaussians and self.page.splats_drawn:
+        if self.page.splats_drawn:  # (a model of Gaussians only)
             return self.send_splats() if self.splats_due else None
         job = self.scheduler.next_job()
         if job is None:

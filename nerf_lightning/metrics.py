@@ -13,7 +13,8 @@ def mse_to_psnr(mse: torch.Tensor) -> torch.Tensor:
 
 
 def image_metrics(
-    rgb: torch.Tensor, target: torch.Tensor, depth: torch.Tensor | None = None, true_depth: torch.Tensor | None = None
+    rgb: torch.Tensor, target: torch.Tensor, depth: torch.Tensor | None = None, true_depth: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """The metrics of one rendered view, the same in validation and in ``nerf-eval``.
 
@@ -28,10 +29,13 @@ def image_metrics(
     """
     if rgb.shape != target.shape or rgb.ndim != 3 or rgb.shape[-1] != 3:
         raise ValueError(f"image_metrics expects (H, W, 3) rgb and target of one shape, got {tuple(rgb.shape)} and {tuple(target.shape)}")
-    metrics = {
-        "psnr": kornia.metrics.psnr(rgb, target, max_val=1.0),
-        "ssim": kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11).mean(),
-    }
+    ssim_map = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], window_size=11)[0].mean(dim=0)  # (H, W)
+    metrics = {"psnr": kornia.metrics.psnr(rgb, target, max_val=1.0), "ssim": ssim_map.mean()}
+    if mask is not None:
+        nan = rgb.new_tensor(float("nan"))
+        masked = bool(mask.any())
+        metrics["psnr_masked"] = mse_to_psnr(((rgb - target) ** 2)[mask].mean()) if masked else nan
+        metrics["ssim_masked"] = ssim_map[mask].mean() if masked else nan
     if depth is not None and true_depth is not None:
         surface = torch.isfinite(true_depth)
         metrics["depth_error"] = (depth[surface] - true_depth[surface]).abs().mean() if bool(surface.any()) else rgb.new_tensor(float("nan"))

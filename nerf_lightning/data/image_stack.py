@@ -1,4 +1,5 @@
-"""The images of a split as one (N, H, W, 3) uint8 tensor, held in memory or memory-mapped from a cache file.
+"""The images of a split as one (N, H, W, 3) uint8 tensor (and its masks as one (N, H, W) bool tensor), held in
+memory or memory-mapped from a cache file.
 
 Loaders decode one image at a time into the stack, so loading holds one float image besides the uint8 stack, a
 quarter of the float size. With ``cache`` (``data.scene.image_cache=<folder>``) the stack is a raw file in that
@@ -37,7 +38,8 @@ def as_float_rgb(images: torch.Tensor) -> torch.Tensor:
 
 
 def _quantised(paths: Sequence[Path], decode: Callable[[Path], torch.Tensor]) -> Iterator[np.ndarray]:
-    """decode(path) -> (H, W, 3) floats for each path in turn, as (H, W, 3) uint8, all of the first one's size."""
+    """decode(path) -> (H, W, 3) floats (or (H, W) bools) for each path in turn, as (H, W, 3) uint8 (or (H, W)
+    bool), all of the first one's size."""
     first: tuple[int, ...] | None = None
     for path in paths:
         image = decode(path)
@@ -46,7 +48,7 @@ def _quantised(paths: Sequence[Path], decode: Callable[[Path], torch.Tensor]) ->
         elif tuple(image.shape) != first:
             raise ValueError(f"{path} is {image.shape[1]}x{image.shape[0]} but {paths[0].name} is {first[1]}x{first[0]}: "
                              "all images of a split must have one size")
-        yield to_uint8(image)
+        yield image.numpy() if image.dtype == torch.bool else to_uint8(image)
 
 
 def _stamp(path: Path) -> list[Any]:
@@ -64,15 +66,16 @@ def cache_name(label: str, paths: Sequence[Path], recipe: dict[str, Any], depend
 
 
 def _map(path: Path, shape: tuple[int, ...]) -> torch.Tensor:
-    """The raw uint8 file as a (N, H, W, 3) tensor over a copy-on-write mapping: pages are read on demand and shared."""
-    return torch.from_numpy(np.memmap(path, dtype=np.uint8, mode="c", shape=shape))
+    """The raw file as a (N, H, W, 3) uint8 tensor (or (N, H, W) bool: masks, a byte a pixel) over a copy-on-write
+    mapping: pages are read on demand and shared."""
+    return torch.from_numpy(np.memmap(path, dtype=np.uint8 if len(shape) == 4 else np.bool_, mode="c", shape=shape))
 
 
 def _cached_shape(data: Path, meta: Path) -> tuple[int, ...] | None:
     """The stored shape where both files are there and agree; None otherwise (a miss: the stack is written again)."""
     try:
         shape = tuple(int(size) for size in json.loads(meta.read_text())["shape"])
-        return shape if len(shape) == 4 and data.stat().st_size == int(np.prod(shape)) else None
+        return shape if len(shape) in (3, 4) and data.stat().st_size == int(np.prod(shape)) else None
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -85,11 +88,12 @@ def stack_images(
     recipe: dict[str, Any] | None = None,
     depends_on: Sequence[Path] = (),
 ) -> torch.Tensor:
-    """(N, H, W, 3) uint8 of ``decode(path)`` ((H, W, 3) floats in [0, 1]) for each of the N paths, rounded.
+    """(N, H, W, 3) uint8 of ``decode(path)`` ((H, W, 3) floats in [0, 1]) for each of the N paths, rounded; or
+    (N, H, W) bool where ``decode`` gives (H, W) bools (masks: :func:`~nerf_lightning.data.images.load_mask`).
 
     Args:
         paths: the image files, in the order of the views.
-        decode: reads and prepares one image (composite, downscale, undistort); raises naming the file.
+        decode: reads and prepares one image (composite, downscale, undistort) or mask; raises naming the file.
         cache: a folder: the stack is memory-mapped from a file there (written now, or reused); None keeps it in memory.
         label: the start of the cache file's name (the scene and split), for people looking in the folder.
         recipe: every setting ``decode`` depends on besides the files (downscale, background, ...).
@@ -104,7 +108,7 @@ def stack_images(
         stack = None
         for index, image in enumerate(_quantised(paths, decode)):
             if stack is None:
-                stack = torch.empty((len(paths), *image.shape), dtype=torch.uint8)
+                stack = torch.empty((len(paths), *image.shape), dtype=torch.bool if image.dtype == np.bool_ else torch.uint8)
             stack[index] = torch.from_numpy(image)
         return stack
 

@@ -46,6 +46,44 @@ def load_image(path: str | Path, background: tuple[float, float, float] = (1.0, 
     return image.contiguous()
 
 
+def load_mask(path: str | Path, size: tuple[int, int] | None = None, downscale_by: int = 1) -> torch.Tensor:
+    """Read a mask image as (H, W) bool, True where it shows the object: where the mask is at least half white (its
+    first channel, or its alpha where it has one), or non-zero in a mask stored as 0s and 1s; then downscaled
+    ``downscale_by`` times (:func:`downscale_mask`).
+
+    Args:
+        size: the (height, width) the mask must have before downscaling (its image's), or None to take any.
+
+    Raises FileNotFoundError or ValueError naming the file when it is missing, unreadable or of another size.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mask file not found: {path}")
+    try:
+        array = iio.imread(path)
+    except Exception as error:  # imageio raises many types for corrupt or truncated files
+        raise ValueError(f"could not read mask {path}: {error}") from error
+    if array.ndim == 3:
+        array = array[..., 3] if array.shape[-1] in (2, 4) and array[..., -1].min() < array[..., -1].max() else array[..., 0]
+    if array.ndim != 2 or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating) or array.dtype == np.bool_):
+        raise ValueError(f"mask {path} has shape {tuple(array.shape)} of {array.dtype}; expected a grey or colour image")
+    if size is not None and tuple(array.shape) != tuple(size):
+        raise ValueError(f"mask {path} is {array.shape[1]}x{array.shape[0]} but its image is {size[1]}x{size[0]}: a mask must have its image's size")
+    if np.issubdtype(array.dtype, np.integer) and array.max(initial=0) > 1:
+        mask = array >= (np.iinfo(array.dtype).max + 1) // 2  # 8-bit: 128 and up, so JPEG noise around black and white stays put
+    else:  # 0s and 1s, bools, floats in [0, 1]
+        mask = array.astype(np.float32) >= 0.5
+    return downscale_mask(torch.from_numpy(np.ascontiguousarray(mask)), downscale_by)
+
+
+def downscale_mask(mask: torch.Tensor, factor: int) -> torch.Tensor:
+    """(H, W) bool -> (H // factor, W // factor) bool: a block is the object where at least half of it is, the
+    blocks those of :func:`downscale`, so a mask stays aligned with its downscaled image."""
+    if factor == 1:
+        return mask
+    return downscale(mask[..., None].float(), factor)[..., 0] >= 0.5
+
+
 def image_size(path: str | Path) -> tuple[int, int]:
     """(height, width) of a PNG or JPG read from its header, without decoding the pixels."""
     try:

@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.data.scene_data import SceneDataModule, view_batch
 from nerf_lightning.geometry.rays import indexed_pixel_rays
@@ -21,7 +22,9 @@ class RayDataModule(SceneDataModule):
     :class:`~nerf_lightning.data.scene_data.SceneDataModule` has them.
 
     Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units), ``rgb``
-    (N, 3) in [0, 1] and ``camera_index`` (N,), the training view of each ray. Validation batch:
+    (N, 3) in [0, 1] and ``camera_index`` (N,), the training view of each ray; with ``data.masks=background``,
+    ``mask`` (N,) bool too, the colour the background where it is False (:mod:`~nerf_lightning.data.masks`; with
+    ``exclude`` the rays are drawn among the masked pixels alone). Validation batch:
     :func:`~nerf_lightning.data.scene_data.view_batch` of one view. The loader yields only the drawn pixels'
     indices (``pixel_index`` (N,)); once Lightning has moved them to the model's device,
     :meth:`on_after_batch_transfer` computes the rays there from the cameras of those pixels
@@ -32,7 +35,7 @@ class RayDataModule(SceneDataModule):
 
     Args:
         batch_size: rays per training step.
-        scene, root, val_views, val_split, render_path, render_frames, ndc, contract, val_steps, val_every, seed:
+        scene, root, val_views, val_split, render_path, render_frames, ndc, contract, masks, val_steps, val_every, seed:
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
@@ -44,9 +47,19 @@ class RayDataModule(SceneDataModule):
     def setup(self, stage: str | None = None) -> None:
         super().setup(stage)
         self.rgb = self.scene.train.images.reshape(-1, 3)  # (N*H*W, 3) uint8, a view of the images (in memory or mapped): no copy
+        self.drawable: torch.Tensor | None = None  # (P,) the pixels rays are drawn from where not all of them
+        if self.mask_mode == "exclude":
+            flat = self.scene.train.masks.reshape(-1)
+            index_type = torch.int32 if flat.numel() < 2**31 else torch.int64  # half the memory of a pixel list
+            self.drawable = torch.nonzero(flat).squeeze(1).to(index_type)
+            if not len(self.drawable):
+                raise ValueError(f"data.masks=exclude: the masks of {self.scene.source or 'the scene'} cover no pixel of the training views")
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        """``pixel_index`` (N,): pixels drawn uniformly, with replacement, over every training view (see the class)."""
+        """``pixel_index`` (N,): pixels drawn uniformly, with replacement, over every training view (with
+        ``data.masks=exclude``, over their masked pixels; see the class)."""
+        if self.drawable is not None:
+            return {"pixel_index": self.drawable[torch.randint(0, len(self.drawable), (self.batch_size,), generator=generator)].long()}
         return {"pixel_index": torch.randint(0, self.rgb.shape[0], (self.batch_size,), generator=generator)}
 
     def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
@@ -58,4 +71,9 @@ class RayDataModule(SceneDataModule):
         rays_o, rays_d = indexed_pixel_rays(K, c2w, self.scene.train.height, self.scene.train.width, index)
         colours = self.rgb[index.cpu()].to(index.device, non_blocking=True) if images is None else images.reshape(-1, 3)[index]
         camera_index = index // (self.scene.train.height * self.scene.train.width)
-        return {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours), "camera_index": camera_index}
+        batch = {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours), "camera_index": camera_index}
+        if self.mask_mode == "background":  # the pixels outside the object show the background; the model sees which
+            masks = self.train_masks(index.device).reshape(-1)
+            batch["mask"] = masks[index.cpu()].to(index.device, non_blocking=True) if masks.device != index.device else masks[index]
+            batch["rgb"] = composite_background(batch["rgb"], batch["mask"], self.scene.background)
+        return batch

@@ -23,6 +23,10 @@ class Views:
             :func:`~nerf_lightning.data.image_stack.as_float_rgb` reads either. None for cameras only (a render path).
         depth: (N, H, W) true distance along each pixel's unit ray to the first surface, inf where the ray
             hits nothing; None where unknown.
+        masks: (N, H, W) bool, True where a pixel shows the object (a capture's masks: a turntable's object, or the
+            part of a photo to learn from; possibly memory-mapped like the images); None where the capture has none.
+            What training and evaluation do with them is the datamodule's ``masks`` mode
+            (:mod:`~nerf_lightning.data.masks`).
         names: one name per view (its file), for messages and outputs.
     """
 
@@ -32,6 +36,7 @@ class Views:
     width: int
     images: torch.Tensor | None = None
     depth: torch.Tensor | None = None
+    masks: torch.Tensor | None = None
     names: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -42,6 +47,8 @@ class Views:
             raise ValueError(f"Views: images {tuple(self.images.shape)} do not match {count} cameras of {self.height}x{self.width}")
         if self.depth is not None and self.depth.shape != (count, self.height, self.width):
             raise ValueError(f"Views: depth {tuple(self.depth.shape)} does not match {count} cameras of {self.height}x{self.width}")
+        if self.masks is not None and (self.masks.shape != (count, self.height, self.width) or self.masks.dtype != torch.bool):
+            raise ValueError(f"Views: masks {tuple(self.masks.shape)} of {self.masks.dtype} are not {count} bool masks of {self.height}x{self.width}")
         if not self.names:
             self.names = [f"view_{index:03d}" for index in range(count)]
 
@@ -67,6 +74,7 @@ class Views:
             width=self.width,
             images=take(self.images),
             depth=take(self.depth),
+            masks=take(self.masks),
             names=[self.names[int(i)] for i in index],
         )
 

@@ -12,6 +12,7 @@ from torch.utils.data import DataLoader
 
 from nerf_lightning.data.batches import StepBatchesDataModule
 from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.masks import composite_background, resolve_mode
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
 from nerf_lightning.geometry.space import SceneSpace
@@ -19,12 +20,19 @@ from nerf_lightning.geometry.space import SceneSpace
 RENDER_PATHS = ("test", "orbit", "spiral")
 
 
-def view_batch(views: Views, index: int) -> dict[str, Any]:
+def view_batch(views: Views, index: int, masks: str | None = None, background: torch.Tensor | None = None) -> dict[str, Any]:
     """One whole view: its camera ``K`` (3, 3), ``c2w`` (4, 4) (a model renders it with ``render_view``), rgb
-    (H*W, 3) in [0, 1] and depth (H*W,) where known, row-major; ``height``, ``width`` and ``index`` (in ``views``)."""
+    (H*W, 3) in [0, 1] and depth (H*W,) where known, row-major; ``height``, ``width`` and ``index`` (in ``views``).
+    With a ``masks`` mode (:mod:`~nerf_lightning.data.masks`) and masks, ``mask`` (H*W,) bool too, and with
+    ``background`` mode the colours outside it are ``background`` (3,)."""
     batch: dict[str, Any] = {"K": views.K[index], "c2w": views.c2w[index], "height": views.height, "width": views.width, "index": index}
+    mask = views.masks[index].reshape(-1) if masks is not None and views.masks is not None else None
     if views.images is not None:
         batch["rgb"] = as_float_rgb(views.images[index].reshape(-1, 3))
+        if masks == "background":
+            batch["rgb"] = composite_background(batch["rgb"], mask, background)
+    if mask is not None:
+        batch["mask"] = mask
     if views.depth is not None:
         batch["depth"] = views.depth[index].reshape(-1)
     return batch
@@ -48,6 +56,9 @@ class SceneDataModule(StepBatchesDataModule):
         ndc: sample forward-facing scenes in normalised device coordinates (LLFF; cameras looking down -z).
         contract: an unbounded scene: fields see all of space contracted into [-2, 2]^3 (real captures with
             their background; the fields' and grids' ``aabb`` must be that cube).
+        masks: what the capture's masks do (:mod:`~nerf_lightning.data.masks`): ``exclude`` (pixels outside never in
+            the loss), ``background`` (they show the background colour: turntables), ``ignore``; None: ``exclude``
+            where the capture has masks. ``mask_mode`` is the one in use after ``setup`` (None: no masks used).
         val_steps, val_every, seed: see :class:`StepBatchesDataModule`.
     """
 
@@ -62,6 +73,7 @@ class SceneDataModule(StepBatchesDataModule):
         render_frames: int = 60,
         ndc: bool = False,
         contract: bool = False,
+        masks: str | None = None,
         val_steps: list[int] | tuple[int, ...] = (),
         val_every: int | None = 500,
         seed: int = 0,
@@ -76,9 +88,12 @@ class SceneDataModule(StepBatchesDataModule):
         self.render_path = render_path
         self.render_frames = render_frames
         self.ndc, self.contract = ndc, contract
+        self.masks = masks
+        self.mask_mode: str | None = None
         self.scene: Scene | None = None
         self.space: SceneSpace | None = None
         self._on_device: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
+        self._masks_on_device: dict[torch.device, torch.Tensor] = {}
 
     def setup(self, stage: str | None = None) -> None:
         if self.scene is not None:
@@ -91,7 +106,9 @@ class SceneDataModule(StepBatchesDataModule):
             raise ValueError(f"data.root: {loader} " + ("needs a folder or file: set data.root" if self.root is None else "takes no data.root")) from None
         except ValueError:  # a callable without a signature: let the call say what is wrong
             pass
-        self.scene = self.load_scene(*arguments)
+        scene = self.load_scene(*arguments)
+        self.mask_mode = resolve_mode(self.masks, scene.train.masks is not None, scene.source)
+        self.scene = scene
         self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract)
 
     def cameras_and_images(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -108,13 +125,25 @@ class SceneDataModule(StepBatchesDataModule):
             self._on_device[device] = (train.K.to(device), train.c2w.to(device), images)
         return self._on_device[device]
 
+    def train_masks(self, device: torch.device) -> torch.Tensor:
+        """The training views' masks (V, H, W) bool on ``device`` where their images went there (see
+        :meth:`cameras_and_images`), else on the host; moved once."""
+        if device not in self._masks_on_device:
+            on_device = self.cameras_and_images(device)[2] is not None
+            self._masks_on_device[device] = self.scene.train.masks.to(device) if on_device else self.scene.train.masks
+        return self._masks_on_device[device]
+
+    def view_batch(self, views: Views, index: int) -> dict[str, Any]:
+        """:func:`view_batch` of one of ``views`` with this datamodule's masks mode."""
+        return view_batch(views, index, self.mask_mode, self.scene.background)
+
     def validation_views(self) -> Views:
         held_out = self.scene.held_out(self.val_split)
         return held_out.subset(evenly_spaced(len(held_out), self.val_views))
 
     def val_dataloader(self) -> DataLoader:
         views = self.validation_views()
-        return DataLoader([view_batch(views, i) for i in range(len(views))], batch_size=None, num_workers=0)
+        return DataLoader([self.view_batch(views, i) for i in range(len(views))], batch_size=None, num_workers=0)
 
     def render_views(self, path: str | None = None, n_frames: int | None = None) -> Views:
         """Cameras of a render path (no images): ``test`` (the scene's render split, else its test split),

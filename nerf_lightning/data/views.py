@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.data.scene_data import SceneDataModule
 
@@ -29,7 +30,8 @@ class ViewDataModule(SceneDataModule):
     Training batch: ``image`` (h, w, 3) float in [0, 1], ``K`` (3, 3) (of the patch: its principal point shifted
     by ``offset``), ``c2w`` (4, 4), ``camera_index`` () the training view, ``offset`` (2,) long, the column and row
     of the patch's top-left pixel in the view ((0, 0) for a whole view), and ``height``, ``width`` (h, w: the
-    view's size, or ``patch_size``). The loader yields only ``camera_index`` and ``offset``, drawn with the step's
+    view's size, or ``patch_size``); with ``data.masks=exclude``, ``mask`` (h, w) bool, the pixels the loss covers
+    (with ``background`` the image shows the background colour outside the mask; :mod:`~nerf_lightning.data.masks`). The loader yields only ``camera_index`` and ``offset``, drawn with the step's
     seeded generator (a resumed run draws the same); :meth:`on_after_batch_transfer` cuts the image and camera on
     the model's device from the training images, uploaded there once where they fit (see
     :meth:`~nerf_lightning.data.scene_data.SceneDataModule.cameras_and_images`), else cut on the host.
@@ -37,7 +39,7 @@ class ViewDataModule(SceneDataModule):
 
     Args:
         patch_size: the side of a random square patch in pixels; None for the whole view.
-        scene, root, val_views, val_split, render_path, render_frames, ndc, contract, val_steps, val_every, seed:
+        scene, root, val_views, val_split, render_path, render_frames, ndc, contract, masks, val_steps, val_every, seed:
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
@@ -84,5 +86,12 @@ class ViewDataModule(SceneDataModule):
             image = train.images[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
         else:
             image = images[view, y0 : y0 + height, x0 : x0 + width]
-        return {"image": as_float_rgb(image), "K": patch_camera(K[view], x0, y0), "c2w": c2w[view], "camera_index": index,
-                "offset": offset, "height": height, "width": width}
+        batch = {"image": as_float_rgb(image), "K": patch_camera(K[view], x0, y0), "c2w": c2w[view], "camera_index": index,
+                 "offset": offset, "height": height, "width": width}
+        if self.mask_mode is not None:
+            mask = self.train_masks(device)[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
+            if self.mask_mode == "background":
+                batch["image"] = composite_background(batch["image"], mask, self.scene.background)
+            else:  # exclude: the model's loss covers the masked pixels alone
+                batch["mask"] = mask
+        return batch

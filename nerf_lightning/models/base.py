@@ -101,8 +101,8 @@ class FieldModule(L.LightningModule):
 class SceneModule(FieldModule):
     """A model of a posed scene (a radiance field, Gaussian splats): it renders cameras (``render_view``, the model
     contract) in the scene's space (:class:`~nerf_lightning.geometry.space.SceneSpace`, kept in checkpoints), and
-    validates on whole held-out views: ``val/psnr``, ``val/ssim`` and, where the scene has true depth,
-    ``val/depth_error`` (:func:`~nerf_lightning.metrics.image_metrics`), the renders returned for the snapshots."""
+    validates on whole held-out views: ``val/psnr``, ``val/ssim``, with masks ``val/psnr_masked``
+    (:mod:`~nerf_lightning.data.masks`) and, where the scene has true depth, ``val/depth_error`` (:func:`~nerf_lightning.metrics.image_metrics`), the renders returned for the snapshots."""
 
     def __init__(self, optimizer: Callable[..., torch.optim.Optimizer], scheduler: Callable[..., Any] | None = None) -> None:
         super().__init__(optimizer, scheduler)
@@ -115,9 +115,12 @@ class SceneModule(FieldModule):
         out = self.render_view(batch["K"], batch["c2w"], height, width)
         target = batch["rgb"].reshape(height, width, 3)
         true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
-        metrics = image_metrics(out["rgb"], target, out["depth"], true_depth)
+        mask = batch["mask"].reshape(height, width) if "mask" in batch else None
+        metrics = image_metrics(out["rgb"], target, out["depth"], true_depth, mask)
         self.log("val/psnr", metrics["psnr"], prog_bar=True, batch_size=1, sync_dist=True)
         self.log("val/ssim", metrics["ssim"], batch_size=1, sync_dist=True)
+        if mask is not None:  # a capture with masks: the object alone, besides the whole image
+            self.log("val/psnr_masked", metrics["psnr_masked"], batch_size=1, sync_dist=True)
         if "depth_error" in metrics:  # every rank validates views of the same scene: all log the key, or none does
             self.val_depth_error.update(metrics["depth_error"])
             self.log("val/depth_error", self.val_depth_error, batch_size=1)

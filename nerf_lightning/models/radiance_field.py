@@ -47,7 +47,8 @@ class RadianceFieldModule(SceneModule):
         train_background: what a training ray shows where it is not opaque: ``scene`` (the scene space's
             background, as rendered) or ``random`` (a uniform random colour a ray and a step, Instant-NGP's): with
             photos that are opaque everywhere (a real capture) a transparent ray then cannot match its pixel, so the
-            field learns surfaces instead of a fog. Not for photos that had alpha: their targets show the background.
+            field learns surfaces instead of a fog. Not for photos that had alpha: their targets show the background
+            (but with ``data.masks=background`` the target outside the mask shows the same random colour).
     """
 
     kind = "radiance_field"
@@ -203,11 +204,14 @@ class RadianceFieldModule(SceneModule):
         if self.camera_refinement is not None and camera_index is not None:
             rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
         out = self.render(rays_o, rays_d, perturb=True, camera_indices=camera_index)
-        rgb = out["rgb"]
+        rgb, target = out["rgb"], batch["rgb"]
         if self.train_background == "random":  # what a ray leaves transparent shows a random colour, not the photo's
-            rgb = rgb + (1.0 - out["accumulation"])[:, None] * (torch.rand_like(rgb) - self.space.background.to(rgb))
-        mse = F.mse_loss(rgb, batch["rgb"])
-        extra_losses = self.sampler.losses(out["samples"], out, batch["rgb"])
+            colour = torch.rand_like(rgb)
+            rgb = rgb + (1.0 - out["accumulation"])[:, None] * (colour - self.space.background.to(rgb))
+            if "mask" in batch:  # data.masks=background: outside the object the target is that colour too
+                target = torch.where(batch["mask"][:, None], target, colour)
+        mse = F.mse_loss(rgb, target)
+        extra_losses = self.sampler.losses(out["samples"], out, target)
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
         appearance = getattr(self.field, "appearance", None)

@@ -195,8 +195,14 @@ class SplatModule(SceneModule):
         full_height, full_width = self.view_size or (height, width)
         self._drawn = (projection, full_width, full_height, height * width / (full_height * full_width))
         rgb = out["rgb"]
-        l1 = (rgb - image).abs().mean()
-        ssim = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11).mean()
+        ssim_map = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11)
+        mask = batch.get("mask")  # data.masks=exclude: the loss covers the masked pixels alone, as a mean over them
+        if mask is None:
+            l1, ssim = (rgb - image).abs().mean(), ssim_map.mean()
+        else:
+            count = mask.sum().clamp(min=1)
+            l1 = ((rgb - image).abs().mean(dim=-1) * mask).sum() / count
+            ssim = (ssim_map[0].mean(dim=0) * mask).sum() / count
         loss = (1.0 - self.ssim_weight) * l1 + self.ssim_weight * (1.0 - ssim)
         if not loss.requires_grad:  # the view saw no Gaussian: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.data.formats.transforms import load_transforms
 from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.masks import composite_background, resolve_mode
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import image_metrics
@@ -26,6 +27,15 @@ from nerf_lightning.models.contract import RendersCamera, require
 from nerf_lightning.outputs.frames import render_frame
 
 log = logging.getLogger(__name__)
+
+# eval.json's "masks": what "psnr" and "ssim" cover (the results table's PSNR and SSIM) and what "_masked" ones do
+MASKS_SAID = {
+    None: {"mode": None, "psnr": "the whole image"},
+    "exclude": {"mode": "exclude", "psnr": "the whole image, the photo as it is",
+                "psnr_masked": "the masked pixels alone (what training learnt from)"},
+    "background": {"mode": "background", "psnr": "the whole image, the photo's masked pixels over the background colour",
+                   "psnr_masked": "the masked pixels alone (the object)"},
+}
 
 
 def second_capture(model: RendersCamera, config: dict, root: str | Path) -> Scene:
@@ -38,26 +48,36 @@ def second_capture(model: RendersCamera, config: dict, root: str | Path) -> Scen
                            background=tuple(scene_cfg.get("background") or (0.0, 0.0, 0.0)))
 
 
-def views_to_evaluate(model: RendersCamera, config: dict, split: str = "test", root: str | Path | None = None) -> Views:
+def views_to_evaluate(model: RendersCamera, config: dict, split: str = "test", root: str | Path | None = None) -> tuple[Views, str | None, torch.Tensor]:
     """The held-out views of the run's scene (``split``, else the other held-out split), or those of ``root`` (its
-    ``split`` if it names one, else all)."""
+    ``split`` if it names one, else all); the masks mode training used (:mod:`~nerf_lightning.data.masks`) and the
+    scene's background colour, with which they are scored."""
     if not root:
-        return load_run_data(config).scene.held_out(split)
+        data = load_run_data(config)
+        return data.scene.held_out(split), data.mask_mode, data.scene.background
     scene = second_capture(model, config, root)
-    return scene.splits[split] if split in scene.splits else scene.train
+    mode = resolve_mode(config["data"].get("masks"), scene.train.masks is not None, scene.source)
+    return scene.splits[split] if split in scene.splits else scene.train, mode, scene.background
 
 
-def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None = None) -> list[dict[str, Any]]:
+def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None = None, masks: str | None = None,
+                   background: torch.Tensor | None = None) -> list[dict[str, Any]]:
     """Render ``views`` (with images) and score each with :func:`~nerf_lightning.metrics.image_metrics`, timing each
     render (``seconds``: the first view's includes any one-off compilation); with
-    ``output_dir``, the renders go to ``images/<view>_rgb.png`` and ``_depth.png`` there."""
+    ``output_dir``, the renders go to ``images/<view>_rgb.png`` and ``_depth.png`` there. With a ``masks`` mode and
+    masks, each view is scored over the whole image (with ``background``, the photo composited onto ``background``
+    outside its mask, as training saw it) and over its mask alone (``psnr_masked``, ``ssim_masked``)."""
     rows = []
     for index in tqdm(range(len(views)), desc=f"evaluating {len(views)} views", unit="view"):
         started = time.perf_counter()
         frame = render_frame(model, views, index)  # on the CPU when it returns: the device has finished
         seconds = time.perf_counter() - started
         true_depth = views.depth[index] if views.depth is not None else None
-        metrics = image_metrics(frame["rgb"], as_float_rgb(views.images[index]), frame["depth"] if true_depth is not None else None, true_depth)
+        target = as_float_rgb(views.images[index])
+        mask = views.masks[index] if masks is not None and views.masks is not None else None
+        if masks == "background":
+            target = composite_background(target, mask, background)
+        metrics = image_metrics(frame["rgb"], target, frame["depth"] if true_depth is not None else None, true_depth, mask)
         rows.append({"view": views.names[index], **{key: float(value) for key, value in metrics.items()}, "seconds": round(seconds, 4)})
         if output_dir is not None:
             stem = Path(views.names[index]).stem
@@ -68,7 +88,7 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
 
 def mean_metrics(rows: list[dict[str, Any]]) -> dict[str, float]:
     """The mean of each metric over the views (depth error over the views where it is defined)."""
-    keys = [key for key in ("psnr", "ssim", "depth_error") if any(key in row for row in rows)]
+    keys = [key for key in ("psnr", "ssim", "psnr_masked", "ssim_masked", "depth_error") if any(key in row for row in rows)]
     mean = {}
     for key in keys:
         values = [row[key] for row in rows if key in row and row[key] == row[key]]  # NaN: a view with no surface
@@ -85,13 +105,13 @@ def evaluate_checkpoint(ckpt_path: str | Path, output_dir: str | Path, split: st
     model, info = load_model(ckpt_path, device, trust=trust)
     require(model, RendersCamera, "nerf-eval", "a model that renders a camera")
     output_dir = Path(output_dir)
-    views = views_to_evaluate(model, info["config"], split, root)
+    views, masks, background = views_to_evaluate(model, info["config"], split, root)
     if max_views:
         views = views.subset(evenly_spaced(len(views), max_views))
-    rows = evaluate_views(model, views, output_dir)
+    rows = evaluate_views(model, views, output_dir, masks, background)
     result = {"checkpoint": str(Path(ckpt_path).resolve()), "step": info["global_step"], "split": split,
               "scene": str(Path(root).resolve()) if root else "the run's own", "views": len(rows), "frame_size": [views.height, views.width],
-              "mean": mean_metrics(rows), "seconds_per_frame": statistics.median(row["seconds"] for row in rows) if rows else None,
+              "mean": mean_metrics(rows), "masks": MASKS_SAID.get(masks, MASKS_SAID[None]), "seconds_per_frame": statistics.median(row["seconds"] for row in rows) if rows else None,
               "device": str(model.device), "per_view": rows}
     write_json(output_dir / "eval.json", result)
     log.info("%d views: %s -> %s", len(rows), ", ".join(f"{k} {v:.4f}" for k, v in result["mean"].items()), output_dir / "eval.json")

@@ -18,6 +18,10 @@ is not forward-facing: NDC cannot hold it. It is normalised as a ``transforms.js
 the farthest camera coordinate 1), for the contraction (``data.contract=true``, ``experiment=nerfacto_360_cpu``),
 and its render path is the orbit other 360 captures get.
 
+Masks: a ``masks/`` folder beside ``images/`` (or ``masks_<k>/`` beside ``images_<k>/``), one mask an image with its
+image's stem (any image format), the object where it is white (:func:`~nerf_lightning.data.images.load_mask`), at the
+full size and downscaled as the images are, into ``views.masks``.
+
 A COLMAP sparse model beside the images (``sparse/0/points3D.bin`` or ``.txt``, where ``imgs2poses`` leaves it) gives
 ``scene.points``, mapped into the scene's world by ``world_from_capture`` as the cameras are.
 """
@@ -34,7 +38,7 @@ import torch
 
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as area_downscale
-from nerf_lightning.data.images import load_image
+from nerf_lightning.data.images import downscale_mask, load_image, load_mask
 from nerf_lightning.io import write_png
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.data.formats.transforms import apply_similarity, normalising_transform
@@ -136,6 +140,29 @@ def downscaled_folder(root: Path, factor: int) -> Path:
     return folder
 
 
+def read_masks(root: Path, files: list[Path], downscale: int, size: tuple[int, int], image_cache: str | None) -> torch.Tensor | None:
+    """(N, H, W) bool masks of the image ``files`` (of ``size`` (H, W)) from ``root/masks_<downscale>/`` or else
+    ``root/masks/`` (downscaled to ``size``), matched by stem; None where the capture has neither folder."""
+    folder = root / f"masks_{downscale}" if (root / f"masks_{downscale}").is_dir() and downscale != 1 else root / "masks"
+    if not folder.is_dir():
+        return None
+    by_stem = {path.stem: path for path in sorted(folder.iterdir()) if path.is_file() and not path.name.startswith(".")}
+    missing = [file.name for file in files if file.stem not in by_stem]
+    if missing:
+        raise ValueError(f"{folder} has no mask for {len(missing)} of the {len(files)} images ({', '.join(missing[:5])}"
+                         f"{' ...' if len(missing) > 5 else ''}): give each image a mask of its stem, or remove the folder")
+
+    def decode(path: Path) -> torch.Tensor:
+        mask = load_mask(path)
+        factor = mask.shape[1] // size[1]
+        if factor < 1 or mask.shape[0] // factor != size[0] or mask.shape[1] // factor != size[1]:
+            raise ValueError(f"mask {path} is {mask.shape[1]}x{mask.shape[0]}: neither its image's {size[1]}x{size[0]} nor a whole multiple of it")
+        return downscale_mask(mask, factor)
+
+    return stack_images([by_stem[file.stem] for file in files], decode, cache=image_cache, label=f"{root.name}-{folder.name}",
+                        recipe={"loader": "llff-masks", "size": list(size)})
+
+
 def load_llff(
     root: str | Path,
     downscale: int = 8,
@@ -190,6 +217,7 @@ def load_llff(
     order, rows = stacking_order({"train": train, "val": held} if held else {"train": train})
     images = stack_images([files[i] for i in order], load_image, cache=image_cache, label=f"{root.name}-{folder.name}", recipe={"loader": "llff"})
     height, width = images.shape[1:3]
+    masks = read_masks(root, [files[i] for i in order], downscale, (height, width), image_cache)
     full_height, full_width, full_focal = hwf[0]
     scale_x, scale_y = full_width / width, full_height / height
     if abs(scale_x - scale_y) > 0.02 * scale_x:
@@ -219,7 +247,7 @@ def load_llff(
 
     cameras = to_opencv(c2w, f"{root / 'poses_bounds.npy'}")[order]
     K = torch.tensor([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
-    views = Views(K=K.expand(len(order), 3, 3).clone(), c2w=cameras, height=height, width=width, images=images,
+    views = Views(K=K.expand(len(order), 3, 3).clone(), c2w=cameras, height=height, width=width, images=images, masks=masks,
                   names=[files[i].name for i in order])
     splits = {name: views.subset(split_rows) for name, split_rows in rows.items()}
     if held:

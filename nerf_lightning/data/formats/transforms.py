@@ -17,6 +17,11 @@ times beyond the cameras' unit box) is kept as ``scene.aabb_scale`` and sets the
 Splits: nerfstudio's ``train_filenames`` / ``val_filenames`` / ``test_filenames`` lists where the json has them,
 else every ``holdout_every``-th frame held out as val and test.
 
+Masks: nerfstudio's per-frame ``mask_path`` (relative to the json's folder; ``nerf-process-data masks=`` writes
+``masks/<photo>.png``), one mask a frame of its image's full size, the object where it is white (or non-zero in a mask
+of 0s and 1s; :func:`~nerf_lightning.data.images.load_mask`), downscaled and undistorted as the image is, into
+``views.masks``. Either every frame with an image has one, or none does.
+
 Sparse points: nerfstudio's ``ply_file_path`` (relative to the json's folder; ``nerf-process-data`` writes
 ``sparse_pc.ply``), a PLY of the capture's points in the json's coordinates, is read into ``scene.points``, mapped by
 ``world_from_capture`` as the cameras are.
@@ -35,7 +40,7 @@ import torch
 
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
-from nerf_lightning.data.images import image_size, load_image
+from nerf_lightning.data.images import image_size, load_image, load_mask
 from nerf_lightning.data.points import read_ply_points
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
@@ -193,9 +198,9 @@ def load_transforms(
     if not present:
         raise FileNotFoundError(f"{path}: none of its {len(frames)} frames has an image file (first: {frames[0]['file_path']})")
 
-    lenses = {}  # image path -> K, distortion; from the images' headers, before anything is decoded
+    lenses, sizes = {}, {}  # image path -> K, distortion and full (height, width); from the images' headers, before anything is decoded
     for number, frame, image_path in present:
-        height, width = image_size(image_path)
+        height, width = sizes[image_path] = image_size(image_path)
         K, distortion = frame_intrinsics(frame, meta, width, height, path, f"frame {number} ({frame['file_path']}): ")
         K[:2] /= downscale  # downscale first, then undistort the smaller image: the distortion is in normalised coordinates
         lenses[image_path] = (K, distortion)
@@ -231,8 +236,9 @@ def load_transforms(
     image_paths = [present[index][2] for index in order]
     images = stack_images(image_paths, decode, cache=image_cache, label=path.parent.name,
                           recipe={"loader": "transforms", "downscale": downscale, "background": list(background)}, depends_on=[path])
+    masks = _masks(path, [present[index] for index in order], sizes, lenses, downscale, image_cache)
     K = torch.stack([lenses[image_path][0] for image_path in image_paths])
-    views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images,
+    views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images, masks=masks,
                   names=[image_path.name for image_path in image_paths])
     points = None
     if meta.get("ply_file_path") is not None:
@@ -254,6 +260,37 @@ def load_transforms(
         background=torch.tensor(background, dtype=torch.float32), source=str(path),
         world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale, points=points,
     )
+
+
+def _masks(path: Path, frames: list[tuple[int, dict, Path]], sizes: dict[Path, tuple[int, int]],
+           lenses: dict[Path, tuple[torch.Tensor, torch.Tensor]], downscale: int, image_cache: str | None) -> torch.Tensor | None:
+    """(N, H, W) bool masks of ``frames`` ((number, frame, image path), in the views' order) from their ``mask_path``,
+    downscaled and undistorted as their images; None where no frame has one. ValueError naming the frames without one
+    where only some have one, and naming a mask that is missing or of another size than its image."""
+    with_mask = [frame for frame in frames if frame[1].get("mask_path") is not None]
+    if not with_mask:
+        return None
+    if len(with_mask) < len(frames):
+        without = [str(frame["file_path"]) for _, frame, _ in frames if frame.get("mask_path") is None]
+        raise ValueError(f"{path}: {len(with_mask)} frames have a 'mask_path' but {len(without)} do not "
+                         f"({', '.join(without[:5])}{' ...' if len(without) > 5 else ''}): give every frame its mask, or none")
+    mask_paths, image_of = [], {}
+    for number, frame, image_path in frames:
+        if not isinstance(frame["mask_path"], str):
+            raise ValueError(f"{path}: frame {number}: 'mask_path' must be a file name, got {frame['mask_path']!r}")
+        mask_paths.append(path.parent / frame["mask_path"])
+        image_of[mask_paths[-1]] = image_path
+
+    def decode(mask_path: Path) -> torch.Tensor:
+        image_path = image_of[mask_path]
+        mask = load_mask(mask_path, size=sizes[image_path], downscale_by=downscale)
+        K, distortion = lenses[image_path]
+        if not distortion.any():
+            return mask
+        return undistort(mask[..., None].float().expand(-1, -1, 3), K, distortion)[..., 0] >= 0.5
+
+    return stack_images(mask_paths, decode, cache=image_cache, label=f"{path.parent.name}-masks",
+                        recipe={"loader": "transforms-masks", "downscale": downscale}, depends_on=[path])
 
 
 def _named_splits(meta: dict, path: Path, file_paths: list[str]) -> dict[str, list[int]] | None:

@@ -195,8 +195,10 @@ class SplatModule(SceneModule):
         full_height, full_width = self.view_size or (height, width)
         self._drawn = (projection, full_width, full_height, height * width / (full_height * full_width))
         rgb = out["rgb"]
+        mask = batch.get("mask")  # data.masks=exclude: no gradient reaches a pixel outside; the loss a mean over the mask
+        if mask is not None:
+            rgb = torch.where(mask[..., None], rgb, image)
         ssim_map = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11)
-        mask = batch.get("mask")  # data.masks=exclude: the loss covers the masked pixels alone, as a mean over them
         if mask is None:
             l1, ssim = (rgb - image).abs().mean(), ssim_map.mean()
         else:

@@ -158,3 +158,23 @@ def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(proc
     torch.testing.assert_close(0.5 + SH_C0 * model.gaussians.sh0.detach()[:, 0], scene.points.colours.float() / 255.0, atol=1e-6, rtol=0)
     metrics = train(cfg)
     assert metrics["step"] == 3 and metrics["train/gaussians"] == 300
+
+
+
+def test_an_exclude_mask_keeps_the_pixels_outside_it_out_of_the_loss(make_config, scene_cache, monkeypatch):
+    from types import SimpleNamespace
+
+    from hydra.utils import instantiate
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    model = instantiate(make_config(*QUICK).model)
+    model.log = lambda *args, **kwargs: None
+    rendered = torch.rand(32, 32, 3, requires_grad=True)  # what the splats drew, standing in for the rasteriser
+    model.draw = lambda K, c2w, height, width: ({"rgb": rendered}, SimpleNamespace(means2d=torch.zeros(1, 2)))
+    mask = torch.zeros(32, 32, dtype=torch.bool)
+    mask[8:24, 8:24] = True
+    model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None, "mask": mask}, 0).backward()
+    assert rendered.grad[~mask].abs().max() == 0 and rendered.grad[mask].abs().min() > 0
+    rendered.grad = None
+    model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None}, 0).backward()  # no mask: every pixel
+    assert rendered.grad.abs().min() > 0

@@ -34,6 +34,7 @@ VIZ_BACKENDS = ("png", "viser")
 MATCHERS = ("auto", "exhaustive", "sequential")  # as nerf_lightning.data.capture.colmap
 MAPPERS = ("auto", "global", "incremental")
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+MASK_OBJECTS = ("white", "black")  # as nerf_lightning.data.capture.images
 SEED_RANGE = (0, 2**32 - 1)  # what Lightning's seed_everything and numpy take
 PROCEDURAL_MIN_VIEWS = 10  # as nerf_lightning.data.formats.procedural.make_procedural_scene
 
@@ -239,7 +240,8 @@ def check_viz_cameras_keys(cfg: DictConfig) -> None:
 
 
 def check_process_data_keys(cfg: DictConfig) -> None:
-    """nerf-process-data's keys (whether ``input`` exists and is photos or a video is checked as it is read)."""
+    """nerf-process-data's keys (whether ``input`` exists and is photos or a video, and ``masks`` a folder of masks, is
+    checked as it is read)."""
     check_given(cfg, "input", "a folder of photos or a video file")
     check_given(cfg, "output", "the folder to write the capture into")
     check_integer(cfg, "frames", 1)
@@ -254,6 +256,8 @@ def check_process_data_keys(cfg: DictConfig) -> None:
         raise ValueError(f"downscales must be a list of integers of 2 or more, such as [2, 4, 8] (or []), got {shown(downscales)}")
     check_number(cfg, "min_registered", low=0.0, high=1.0)
     check_integer(cfg, "seed", *SEED_RANGE)
+    check_text(cfg, "masks", "a folder with a mask for each photo", null=True)
+    check_choice(cfg, "mask_object", MASK_OBJECTS)
     check_bool(cfg, "progress")
     check_bool(cfg, "verbose")
 

@@ -1,5 +1,6 @@
 """nerf-process-data: a folder of photos or a video posed with COLMAP (pycolmap, in-process) into a capture that
-nerf-train reads (:func:`nerf_lightning.data.capture.process_capture`), and its report printed."""
+nerf-train reads (:func:`nerf_lightning.data.capture.process_capture`), and its report printed; with masks=<folder>,
+a mask a photo, COLMAP matches the object alone and the masks are written beside the images."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ def process(cfg: DictConfig) -> dict:
     return process_capture(cfg.input, cfg.output, frames=cfg.frames, matcher=cfg.matcher, mapper=cfg.mapper, camera_model=cfg.camera_model,
                            single_camera=cfg.single_camera, max_size=cfg.max_size, max_features=cfg.max_features,
                            downscales=list(cfg.downscales), min_registered=cfg.min_registered, seed=cfg.seed,
+                           masks=None if cfg.masks in (None, "") else str(cfg.masks), mask_object=str(cfg.mask_object),
                            progress=cfg.progress, verbose=cfg.verbose)
 
 

@@ -64,16 +64,20 @@ def load_mask(path: str | Path, size: tuple[int, int] | None = None, downscale_b
     except Exception as error:  # imageio raises many types for corrupt or truncated files
         raise ValueError(f"could not read mask {path}: {error}") from error
     if array.ndim == 3:
-        array = array[..., 3] if array.shape[-1] in (2, 4) and array[..., -1].min() < array[..., -1].max() else array[..., 0]
+        array = array[..., -1] if array.shape[-1] in (2, 4) and array[..., -1].min() < array[..., -1].max() else array[..., 0]
     if array.ndim != 2 or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating) or array.dtype == np.bool_):
         raise ValueError(f"mask {path} has shape {tuple(array.shape)} of {array.dtype}; expected a grey or colour image")
     if size is not None and tuple(array.shape) != tuple(size):
         raise ValueError(f"mask {path} is {array.shape[1]}x{array.shape[0]} but its image is {size[1]}x{size[0]}: a mask must have its image's size")
-    if np.issubdtype(array.dtype, np.integer) and array.max(initial=0) > 1:
-        mask = array >= (np.iinfo(array.dtype).max + 1) // 2  # 8-bit: 128 and up, so JPEG noise around black and white stays put
-    else:  # 0s and 1s, bools, floats in [0, 1]
-        mask = array.astype(np.float32) >= 0.5
-    return downscale_mask(torch.from_numpy(np.ascontiguousarray(mask)), downscale_by)
+    return downscale_mask(torch.from_numpy(np.ascontiguousarray(white_pixels(array))), downscale_by)
+
+
+def white_pixels(values: np.ndarray) -> np.ndarray:
+    """(H, W) values of a mask's channel -> (H, W) bool, True where at least half white: 128 and up of 8 bits (JPEG
+    noise around black and white stays put), 32768 of 16, 0.5 of floats; non-zero in a mask of 0s and 1s."""
+    if np.issubdtype(values.dtype, np.integer) and values.max(initial=0) > 1:
+        return values >= (128 if values.dtype.itemsize == 1 else 32768)
+    return values.astype(np.float32) >= 0.5  # 0s and 1s, bools, floats in [0, 1]
 
 
 def downscale_mask(mask: torch.Tensor, factor: int) -> torch.Tensor:

@@ -206,12 +206,14 @@ def test_the_name_lists_agree_with_the_library():
     import torch
 
     from nerf_lightning.data.capture.colmap import CAMERA_MODELS, MAPPERS, MATCHERS
+    from nerf_lightning.data.capture.images import MASK_OBJECTS
     from nerf_lightning.data.scene_data import RENDER_PATHS
     from nerf_lightning.devices import DEVICE_CHOICES
     from nerf_lightning.outputs.export import EXPORT_FORMATS
     from nerf_lightning.outputs.mesh import parse_keep
 
     assert (keys.MATCHERS, keys.MAPPERS, keys.CAMERA_MODELS) == (MATCHERS, MAPPERS, CAMERA_MODELS)
+    assert keys.MASK_OBJECTS == MASK_OBJECTS
     assert keys.EXPORT_FORMATS == tuple(EXPORT_FORMATS)
     assert keys.RENDER_PATHS == RENDER_PATHS
     assert keys.DEVICE_CHOICES == DEVICE_CHOICES

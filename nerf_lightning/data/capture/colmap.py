@@ -7,6 +7,12 @@ matching with geometric verification of the chosen image pairs (every pair, or e
 time for a video), and mapping. Features and matches are fed in chunks so that the bars move: images by the handful,
 pairs by the block.
 
+Masks, where given, keep each image's features to its object: COLMAP reads ``<masks>/<image name>.png`` (``IMG_1.jpg``'s
+is ``IMG_1.jpg.png``; an image without one is skipped, not extracted unmasked) at full size, grey, and drops the
+keypoints on its zero pixels after scaling them back from the ``max_size`` copy to full-size pixels, so one
+full-size mask serves any ``max_size`` (a mask of another size is not scaled: it is read pixel for pixel against
+the full-size keypoints, so process.py checks sizes first).
+
 Mapping runs both COLMAP mappers by default, the global one (GLOMAP) and the incremental one, and keeps the model that
 explains the most geometrically verified matches. A model can reproject its own points to a pixel and still be
 wrong: on fox's 50 photos (two arcs of a walk round a mounted fox before a repeating rose wallpaper, the photos between
@@ -32,7 +38,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nerf_lightning.data.capture.images import natural_key
+from nerf_lightning.data.capture.images import mask_name, natural_key
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 
@@ -105,12 +111,18 @@ def choose_matcher(matcher: str, count: int, from_video: bool) -> str:
 
 
 def extract_features(database: Path, images: Path, names: Sequence[str], camera_model: str, single_camera: bool,
-                     max_size: int, max_features: int, progress: bool) -> None:
+                     max_size: int, max_features: int, progress: bool, masks: Path | None = None) -> None:
     """SIFT keypoints and descriptors of ``images/<name>`` for each name into the COLMAP ``database``; the cameras
-    (one shared, or one an image) of ``camera_model`` with a focal length from EXIF or 1.2 x the long side."""
+    (one shared, or one an image) of ``camera_model`` with a focal length from EXIF or 1.2 x the long side. With
+    ``masks``, only the keypoints on a non-zero pixel of ``masks/<name>.png`` (full size, grey) are kept."""
     pycolmap = import_pycolmap()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
+    if masks is not None:
+        absent = [name for name in names if not (masks / f"{name}.png").is_file()]
+        if absent:  # COLMAP would skip those images with a log line and leave them out of the model
+            raise ValueError(f"no COLMAP mask {masks / (absent[0] + '.png')} for {absent[0]} ({len(absent)} missing)")
+        reader.mask_path = masks
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = max_size
     extraction.sift.max_num_features = max_features
@@ -230,7 +242,7 @@ def verified_matches_explained(database: Path, reconstruction: Any, threshold_px
 
 
 def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher: str, mapper: str = "auto", camera_model: str = "OPENCV",
-                single_camera: bool = True, max_size: int = 1600, max_features: int = 8192, seed: int = 0,
+                single_camera: bool = True, max_size: int = 1600, max_features: int = 8192, seed: int = 0, masks: Path | None = None,
                 progress: bool = True, verbose: bool = False) -> tuple[Any | None, dict[str, float], dict[str, Any]]:
     """Structure from motion of ``images/<name>`` for each name: ``colmap_dir/database.db`` and the chosen model,
     also written to ``colmap_dir/sparse/0`` (COLMAP's binary format).
@@ -243,6 +255,7 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
         single_camera: one camera (intrinsics) shared by every image, as for photos from one phone at one zoom.
         max_size: the long side, in pixels, images are read at for feature extraction.
         max_features: SIFT features kept an image.
+        masks: a folder of COLMAP's masks, ``<name>.png`` for each name (0 where features are dropped), or None.
     Returns:
         the model (a ``pycolmap.Reconstruction``, the largest its mapper built; None when none was built), the seconds
         each stage took, and of each mapper run its images registered and fraction of verified matches explained
@@ -260,7 +273,7 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
     seconds = {}
     with colmap_log(verbose):
         started = time.perf_counter()
-        extract_features(database, images, names, camera_model, single_camera, max_size, max_features, progress)
+        extract_features(database, images, names, camera_model, single_camera, max_size, max_features, progress, masks=masks)
         seconds["features"] = time.perf_counter() - started
 
         started = time.perf_counter()
@@ -315,13 +328,14 @@ def camera_from_world(image: Any) -> np.ndarray:
     return w2c
 
 
-def reconstruction_to_transforms(reconstruction: Any, image_folder: str = "images") -> dict[str, Any]:
+def reconstruction_to_transforms(reconstruction: Any, image_folder: str = "images", mask_folder: str | None = None) -> dict[str, Any]:
     """A COLMAP model as a nerfstudio ``transforms.json`` dict, registered images in name order.
 
     Each frame's ``transform_matrix`` is its OpenGL camera-to-world (x right, y up, looking down -z): the inverse of
     COLMAP's world-to-camera with the camera's y and z axes flipped, in COLMAP's world coordinates (no axes swapped;
     the loader centres, orients and scales the world itself). Intrinsics are global keys when the images share one
-    camera, per-frame keys otherwise. ``ply_file_path`` names the sparse points, written beside it.
+    camera, per-frame keys otherwise. ``ply_file_path`` names the sparse points, written beside it. With
+    ``mask_folder``, each frame's ``mask_path`` (nerfstudio's key) names ``<mask_folder>/<image stem>.png``.
     """
     images = sorted((reconstruction.image(image_id) for image_id in reconstruction.reg_image_ids()), key=lambda image: natural_key(image.name))
     cameras = {image.camera_id for image in images}
@@ -330,6 +344,8 @@ def reconstruction_to_transforms(reconstruction: Any, image_folder: str = "image
     for image in images:
         c2w = opengl_to_opencv(torch.linalg.inv(torch.from_numpy(camera_from_world(image))))  # its own inverse: OpenCV -> OpenGL too
         frame = {"file_path": f"{image_folder}/{image.name}", "transform_matrix": c2w.tolist(), "colmap_im_id": int(image.image_id)}
+        if mask_folder is not None:
+            frame["mask_path"] = f"{mask_folder}/{mask_name(image.name)}"
         if len(cameras) > 1:
             frame.update(camera_intrinsics(reconstruction.camera(image.camera_id)))
         frames.append(frame)

@@ -1,5 +1,7 @@
 """A capture's photos, made ready for structure from motion and for training: turned upright by their EXIF
 orientation, written to ``images/`` at full resolution and to ``images_<k>/`` downscaled k times (nerfstudio's layout).
+Their masks, where given, likewise to ``masks/<photo stem>.png`` and ``masks_<k>/``: 8-bit grey, 255 where the photo
+shows the object and 0 elsewhere (nerfstudio's convention: a non-zero mask pixel keeps its image pixel).
 
 A phone stores a portrait photo as landscape pixels plus an EXIF tag saying how to turn it; COLMAP and this
 project's loaders read the pixels as stored, so the pixels themselves are turned here, once.
@@ -10,17 +12,22 @@ from __future__ import annotations
 import io
 import re
 import shutil
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+import numpy as np
+import torch
 from PIL import Image, ImageOps
 
+from nerf_lightning.data.images import downscale_mask, white_pixels
 from nerf_lightning.io import write_atomic
 
 # read by Pillow; HEIC/HEIF (iPhones) is listed so that such files are named as unreadable rather than silently left out
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".heic", ".heif")
 EXIF_ORIENTATION = 0x0112
 JPEG_QUALITY = 95
+# which mask pixels are the object: white (at least half white; non-zero in a mask of 0s and 1s) or black
+MASK_OBJECTS = ("white", "black")
 
 
 def natural_key(name: str) -> list:
@@ -101,3 +108,95 @@ def write_capture_image(path: Path, output: Path, downscales: Iterable[int]) -> 
         save_image(image, output / "images" / name)
     write_downscaled(image, name, output, downscales)
     return name, image.size
+
+
+def listed(names: Sequence[str], shown: int = 8) -> str:
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
+def find_masks(folder: Path, photos: Sequence[Path]) -> dict[Path, Path]:
+    """Each photo's mask in ``folder``, matched by name: ``IMG_1.jpg``'s is ``IMG_1.<any image suffix>`` or
+    nerfstudio's and COLMAP's ``IMG_1.jpg.png``.
+
+    Raises FileNotFoundError or NotADirectoryError naming ``folder``, and ValueError naming the photos without a mask
+    or with two, or two photos of one stem (their masks would be one ``masks/<stem>.png``). Masks without a photo are left alone (a capture pruned of its blurred photos keeps its masks folder).
+    """
+    if not folder.exists():
+        raise FileNotFoundError(f"masks folder not found: {folder} (expected a folder with a mask for each photo, "
+                                "named as the photo: IMG_1.jpg <- IMG_1.png)")
+    if not folder.is_dir():
+        raise NotADirectoryError(f"masks must be a folder with a mask for each photo, got the file {folder}")
+    if photos and folder.resolve() == photos[0].parent.resolve():
+        raise ValueError(f"masks={folder} is the photos' own folder: the photos would be their own masks; put the masks in "
+                         "a folder of their own")
+    stems: dict[str, str] = {}
+    for photo in photos:
+        if photo.stem in stems:
+            raise ValueError(f"photos {stems[photo.stem]} and {photo.name} would share the mask masks/{photo.stem}.png; rename one")
+        stems[photo.stem] = photo.name
+    readable = {suffix.lower() for suffix in Image.registered_extensions()} | set(IMAGE_SUFFIXES)
+    by_stem: dict[str, list[Path]] = {}
+    for path in sorted(folder.iterdir(), key=lambda p: natural_key(p.name)):
+        if path.is_file() and path.suffix.lower() in readable and not path.name.startswith("."):
+            by_stem.setdefault(path.stem, []).append(path)
+    masks, missing = {}, []
+    for photo in photos:
+        found = by_stem.get(photo.stem, []) + by_stem.get(photo.name, [])
+        if len(found) > 1:
+            raise ValueError(f"{photo.name} has {len(found)} masks in {folder} ({', '.join(path.name for path in found)}); keep one")
+        if not found:
+            missing.append(photo.name)
+            continue
+        masks[photo] = found[0]
+    if missing:
+        raise ValueError(f"{len(missing)} of the {len(photos)} photos have no mask in {folder}: {listed(missing)}; a mask is "
+                         f"named as its photo, {Path(missing[0]).stem}.png (or {missing[0]}.png)")
+    return masks
+
+
+def mask_values(image: Image.Image) -> np.ndarray:
+    """(H, W) values of a mask image: its alpha where that varies, else its first channel, as
+    :func:`nerf_lightning.data.images.load_mask` reads a mask."""
+    if image.mode == "P":
+        image = image.convert("RGBA" if "transparency" in image.info else "RGB")
+    elif image.mode not in ("1", "L", "LA", "RGB", "RGBA", "I;16", "I", "F"):
+        image = image.convert("RGB")
+    values = np.asarray(image)
+    if values.ndim == 3:
+        alpha = values[..., -1] if values.shape[-1] in (2, 4) else None
+        values = alpha if alpha is not None and alpha.min() < alpha.max() else values[..., 0]
+    return values
+
+
+def read_mask(path: Path, mask_object: str = "white") -> np.ndarray:
+    """A mask file as (H, W) bool, True on the object, turned upright by its EXIF orientation as the photos are.
+
+    With ``mask_object="white"`` the object is where the mask is at least half white (128 and up of 255: JPEG noise
+    around black and white stays put), or non-zero in a mask of 0s and 1s; ``"black"`` is the inverse. Raises
+    ValueError naming the file when Pillow cannot read it.
+    """
+    if mask_object not in MASK_OBJECTS:
+        raise ValueError(f"mask_object must be {' or '.join(MASK_OBJECTS)}, got '{mask_object}'")
+    try:
+        with Image.open(path) as opened:
+            opened.load()
+            values = mask_values(upright(opened))
+    except Exception as error:  # Pillow raises many types for unknown, corrupt and truncated files
+        raise ValueError(f"{path.name} ({error})") from error
+    white = white_pixels(values)
+    return white if mask_object == "white" else ~white
+
+
+def mask_name(image_name: str) -> str:
+    """The name a photo's mask gets in ``masks/``: the photo's stem with ``.png`` (IMG_1.jpg -> IMG_1.png)."""
+    return f"{Path(image_name).stem}.png"
+
+
+def write_capture_mask(mask: np.ndarray, image_name: str, output: Path, downscales: Iterable[int]) -> Path:
+    """(H, W) bool object mask of the photo ``images/<image_name>`` as ``output/masks/<stem>.png`` (255 on the object,
+    0 elsewhere) and ``output/masks_<k>/<stem>.png`` lined up with ``images_<k>/`` pixel for pixel; the first's path."""
+    name = mask_name(image_name)
+    written = save_image(Image.fromarray(mask.astype(np.uint8) * 255), output / "masks" / name)
+    for factor in downscales:
+        save_image(Image.fromarray(downscale_mask(torch.from_numpy(mask), factor).numpy().astype(np.uint8) * 255), output / f"masks_{factor}" / name)
+    return written

@@ -1,9 +1,10 @@
 """A user's own capture, photos or a video, to a posed capture this project trains on: what ``nerf-process-data`` does.
 
-    input (folder of photos | video)
+    input (folder of photos | video)             [masks (folder, a mask a photo)]
       -> images/ (upright, full size) and images_2/, images_4/, images_8/          images.py, video.py
-      -> COLMAP features, matches, mapping, in-process through pycolmap              colmap.py
-      -> transforms.json (nerfstudio's layout), sparse_pc.ply, colmap/, report.json
+         [masks/ and masks_2/, masks_4/, masks_8/, lined up with them]             images.py
+      -> COLMAP features (only on the masked object), matches, mapping, in-process through pycolmap   colmap.py
+      -> transforms.json (nerfstudio's layout; frames with ``mask_path``), sparse_pc.ply, colmap/, report.json
 
 Everything is written into a hidden folder beside ``output`` and moved into ``output`` at the end, transforms.json
 last: a run that fails (bad images, too few registered, Ctrl-C) leaves ``output`` as it was and no
@@ -40,7 +41,18 @@ from nerf_lightning.data.capture.colmap import (
     registered_names,
     sparse_points,
 )
-from nerf_lightning.data.capture.images import find_images, save_image, write_capture_image, write_downscaled
+from nerf_lightning.data.capture.images import (
+    MASK_OBJECTS,
+    find_images,
+    find_masks,
+    listed,
+    output_name,
+    read_mask,
+    save_image,
+    write_capture_image,
+    write_capture_mask,
+    write_downscaled,
+)
 from nerf_lightning.data.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
 from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_atomic, write_json
@@ -90,8 +102,53 @@ def write_video_frames(video: Path, staging: Path, count: int, downscales: Seque
     return sizes, picked
 
 
-def listed(names: Sequence[str], shown: int = 8) -> str:
-    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+def write_masks(masks: dict[Path, Path], sizes: dict[str, tuple[int, int]], staging: Path, downscales: Sequence[int],
+                mask_object: str, progress: bool) -> dict[str, float]:
+    """Each photo's mask (``masks``: photo -> mask file) into ``staging/masks`` and ``staging/masks_<k>``, and as
+    COLMAP reads masks into ``staging/colmap/masks/<image name>.png``; of each image's name, the fraction of it that
+    is object. ``sizes``: (width, height) of each image written, by name. ValueError, one line naming the masks that
+    cannot be read, a mask of another size than its photo (both named, both sizes) or one with no object in it."""
+    fractions, unreadable = {}, []
+    colmap_masks = staging / "colmap" / "masks"
+    colmap_masks.mkdir(parents=True, exist_ok=True)
+    for photo, path in tqdm(masks.items(), desc="masks", unit="mask", disable=not progress):
+        name = output_name(photo)
+        try:
+            mask = read_mask(path, mask_object)
+        except ValueError as error:
+            unreadable.append(str(error))
+            continue
+        (width, height), (mask_height, mask_width) = sizes[name], mask.shape
+        if (mask_width, mask_height) != (width, height):
+            turned = " (drawn on the photo as stored, before its EXIF turn upright?)" if (mask_width, mask_height) == (height, width) else ""
+            raise ValueError(f"mask {path.name} is {mask_width}x{mask_height} but its photo {photo.name} is {width}x{height} "
+                             f"(upright){turned}; a mask must be its photo's size")
+        if not mask.any():
+            other = "black" if mask_object == "white" else "white"
+            raise ValueError(f"mask {path.name} (of {photo.name}) is all background, nothing to match: no pixel of it is {mask_object} "
+                             f"(mask_object={mask_object}); draw the object in it, or mask_object={other} if the masks mark the "
+                             f"object {other}")
+        written = write_capture_mask(mask, name, staging, downscales)
+        # COLMAP wants the mask as <image name>.png; a hard link costs nothing and leaves with colmap/masks
+        try:
+            os.link(written, colmap_masks / f"{name}.png")
+        except OSError:
+            shutil.copyfile(written, colmap_masks / f"{name}.png")
+        fractions[name] = float(mask.mean())
+    if unreadable:
+        folder = next(iter(masks.values())).parent
+        shown = "; ".join(unreadable[:3]) + (f"; and {len(unreadable) - 3} more" if len(unreadable) > 3 else "")
+        raise ValueError(f"could not read {len(unreadable)} of the {len(masks)} masks in {folder}: {shown}; convert them to PNG")
+    return fractions
+
+
+def check_masks_apart(masks: Path, output: Path) -> None:
+    """ValueError where the masks folder is one this run replaces in ``output`` (masks/, masks_<k>/): the masks would
+    be deleted as the new ones are moved in."""
+    resolved, replaced = masks.resolve(), output.resolve()
+    if resolved.parent == replaced and (resolved.name == "masks" or MASKS_K.fullmatch(resolved.name)):
+        raise ValueError(f"masks={masks} is inside the output, which this run replaces with the masks it writes; move them "
+                         "out of it or write to another output")
 
 
 def check_registered(registered: int, unregistered: list[str], given: int, source: Path, matcher: str, min_registered: float) -> None:
@@ -116,18 +173,22 @@ def write_points_ply(path: Path, positions: np.ndarray, colours: np.ndarray) -> 
     return write_atomic(path, cloud.export(file_type="ply"))
 
 
-IMAGES_K = re.compile(r"images_\d+")
+MASKS_K = re.compile(r"masks_\d+")
+# folders an earlier run wrote that this run may not write: removed, so that no images_8/ or masks/ of another run
+# stays beside this run's transforms.json (a run without masks removes an earlier run's masks/: its frames name none)
+STALE = re.compile(r"images_\d+|masks(_\d+)?")
 
 
 def publish(staging: Path, output: Path) -> None:
     """Move what ``staging`` holds into ``output``, replacing what an earlier run wrote there: its transforms.json
-    removed first and the new one moved in last, so that a transforms.json is never beside images of another run."""
+    removed first and the new one moved in last, so that a transforms.json is never beside images of another run.
+    An earlier run's ``images_<k>/``, ``masks/`` and ``masks_<k>/`` that this run did not write are removed too."""
     output.mkdir(parents=True, exist_ok=True)
     (output / "transforms.json").unlink(missing_ok=True)
     replaced = staging / ".replaced"
     replaced.mkdir()
     entries = [entry.name for entry in staging.iterdir() if entry.name not in ("transforms.json", ".replaced")]
-    stale = [entry.name for entry in output.iterdir() if IMAGES_K.fullmatch(entry.name) and entry.name not in entries]
+    stale = [entry.name for entry in output.iterdir() if STALE.fullmatch(entry.name) and entry.name not in entries]
     for name in [*entries, *stale]:
         if (output / name).exists() or (output / name).is_symlink():
             os.replace(output / name, replaced / name)
@@ -149,6 +210,8 @@ def process_capture(
     downscales: Sequence[int] = (2, 4, 8),
     min_registered: float = 0.5,
     seed: int = 0,
+    masks: str | Path | None = None,
+    mask_object: str = "white",
     progress: bool = True,
     verbose: bool = False,
 ) -> dict[str, Any]:
@@ -168,11 +231,19 @@ def process_capture(
         downscales: factors of the smaller copies, ``images_<k>/``.
         min_registered: stop with an error when COLMAP poses fewer than this fraction of the images.
         seed: COLMAP's random seed.
+        masks: a folder with a mask for each photo, named as the photo (``IMG_1.jpg`` <- ``IMG_1.png``, or
+            ``IMG_1.jpg.png``), of its size upright (EXIF orientation applied, as to the photos), any format Pillow
+            reads; COLMAP then extracts features on the object alone, and the masks are written as ``masks/<stem>.png``
+            (255 on the object) and ``masks_<k>/``, each frame of transforms.json naming its ``mask_path``. Not for a
+            video.
+        mask_object: which mask pixels are the object: ``white`` (at least half white; in a mask of 0s and 1s, the
+            non-zero ones) or ``black`` (the rest).
         progress: progress bars on stderr.
         verbose: COLMAP's own log on stderr.
     Returns:
         the report (also written as ``report.json``): images given and registered, those left out, mean reprojection
-        error, mean track length, points, seconds of each stage.
+        error, mean track length, points, seconds of each stage; with masks, ``masks``: their folder, the convention,
+        how many and the mean fraction of a photo that is object.
     """
     started = time.perf_counter()
     source, output = Path(input).expanduser(), Path(output).expanduser()
@@ -194,9 +265,19 @@ def process_capture(
         raise ValueError(f"downscales must be integers of 2 or more, got {list(downscales)}")
     if not 0.0 <= min_registered <= 1.0:
         raise ValueError(f"min_registered must be a fraction between 0 and 1, got {min_registered}")
+    if mask_object not in MASK_OBJECTS:
+        raise ValueError(f"mask_object must be {' or '.join(MASK_OBJECTS)}, got '{mask_object}'")
+    mask_folder = Path(masks).expanduser() if masks not in (None, "") else None
+    if mask_folder is not None and source.is_file():
+        raise ValueError(f"masks are not supported with a video input ({source.name}): give its frames as a folder of photos "
+                         "with a mask each, or leave out masks=")
     pycolmap = import_pycolmap()  # before any work: a missing extra is the first thing to hear about
     from_video = source.is_file()
     images_given = None if from_video else find_images(source)
+    photo_masks = None
+    if mask_folder is not None:
+        photo_masks = find_masks(mask_folder, images_given)
+        check_masks_apart(mask_folder, output)
     ensure_writable(output.parent, "output")
     staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent))
     try:
@@ -206,6 +287,7 @@ def process_capture(
             sizes, report["video_frames"] = write_video_frames(source, staging, frames, downscales, progress)
         else:
             sizes = write_photos(images_given, staging, downscales, progress)
+        fractions = write_masks(photo_masks, sizes, staging, downscales, mask_object, progress) if photo_masks else None
         seconds["images"] = time.perf_counter() - started
         names = list(sizes)
         if len(names) < 3:
@@ -220,14 +302,16 @@ def process_capture(
         chosen = choose_matcher(matcher, len(names), from_video)
         model, stage_seconds, mapping = reconstruct(
             staging / "images", names, staging / "colmap", matcher=chosen, mapper=mapper, camera_model=camera_model, single_camera=single_camera,
-            max_size=int(max_size), max_features=int(max_features), seed=seed, progress=progress, verbose=verbose)
+            max_size=int(max_size), max_features=int(max_features), seed=seed,
+            masks=staging / "colmap" / "masks" if fractions else None, progress=progress, verbose=verbose)
+        shutil.rmtree(staging / "colmap" / "masks", ignore_errors=True)  # masks/ holds them, by the photos' names
         seconds.update(stage_seconds)
         posed = registered_names(model) if model is not None else set()
         unregistered = [name for name in names if name not in posed]
         check_registered(len(posed), unregistered, len(names), source, chosen, min_registered)
 
         write_started = time.perf_counter()
-        transforms = reconstruction_to_transforms(model)
+        transforms = reconstruction_to_transforms(model, mask_folder="masks" if fractions else None)
         write_points_ply(staging / transforms["ply_file_path"], *sparse_points(model))
         seconds["writing"] = time.perf_counter() - write_started
         seconds["total"] = time.perf_counter() - started
@@ -241,6 +325,9 @@ def process_capture(
             "seconds": {stage: round(value, 2) for stage, value in seconds.items()},
             "pycolmap": getattr(pycolmap, "__version__", "unknown"),
         })
+        if fractions:
+            report["masks"] = {"folder": str(mask_folder), "mask_object": mask_object, "count": len(fractions),
+                               "mean_object_fraction": round(float(np.mean(list(fractions.values()))), 4)}
         write_json(staging / "report.json", report)
         write_json(staging / "transforms.json", transforms)
         publish(staging, output)
@@ -252,7 +339,7 @@ def process_capture(
 def format_report(report: dict[str, Any]) -> str:
     """The report as the few lines ``nerf-process-data`` prints."""
     given, registered = report["images_given"], report["registered"]
-    output = report["output"]
+    output, masks = report["output"], report.get("masks")
     lines = [
         f"registered {registered} of {given} images ({100.0 * registered / given:.0f}%; {report['matcher']} matching, {report['mapper']} mapping, "
         f"{report['camera_model']} camera{'' if report['single_camera'] else 's'})",
@@ -260,7 +347,11 @@ def format_report(report: dict[str, Any]) -> str:
         f"images, {report['points']} points; the poses explain {100.0 * report['verified_matches_explained']:.0f}% of the verified matches",
         "did not register: " + (listed(report["unregistered"]) if report["unregistered"] else "none"),
         f"{report['seconds']['total']:.0f} s: " + ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items() if stage != "total"),
-        f"wrote {output}/transforms.json, images/ (and smaller copies), sparse_pc.ply, colmap/, report.json",
-        f"next: nerf-train experiment=fast_unbounded data.root={output}",
+        f"wrote {output}/transforms.json, images/ (and smaller copies), {'masks/ (and smaller copies), ' if masks else ''}"
+        "sparse_pc.ply, colmap/, report.json",
+        f"next: nerf-train experiment=fast_unbounded data.root={output}" + (" data.masks=background" if masks else ""),
     ]
+    if masks:
+        lines.insert(3, f"masks: {masks['count']} from {masks['folder']} ({masks['mask_object']} = object), on average "
+                        f"{100.0 * masks['mean_object_fraction']:.0f}% of a photo; features matched on the object alone")
     return "\n".join(lines)

@@ -14,6 +14,7 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -178,6 +179,24 @@ def default_cache() -> Path:
     return Path(os.environ.get("NERF_LIGHTNING_CACHE", Path.home() / ".cache" / "nerf_lightning"))
 
 
+def rendered_once(root: Path, marker: str, make: Callable[[Path], object]) -> Path:
+    """``root``, rendered by ``make(folder)`` where ``root/marker`` is not there yet: into a staging folder beside it,
+    then renamed, so that a reader never sees half a scene and processes rendering it at once keep the first."""
+    if not (root / marker).is_file():
+        root.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{root.name}."))
+        try:
+            make(staging)
+            try:
+                staging.rename(root)
+            except OSError:  # another process made it first
+                if not (root / marker).is_file():
+                    raise
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+    return root
+
+
 def load_procedural(
     n_views: int = 100,
     size: int = 100,
@@ -191,16 +210,5 @@ def load_procedural(
     """The procedural scene, rendered into the cache on first use (``NERF_LIGHTNING_CACHE``, default
     ~/.cache/nerf_lightning) and loaded by the Blender loader (``image_cache`` as there)."""
     root = Path(cache_dir or default_cache()) / f"procedural_v{VERSION}_{n_views}views_{size}px"
-    if not (root / "scene.json").is_file():
-        root.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{root.name}."))
-        try:
-            make_procedural_scene(staging, n_views=n_views, size=size)
-            try:
-                staging.rename(root)
-            except OSError:  # another process made it first
-                if not (root / "scene.json").is_file():
-                    raise
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
+    rendered_once(root, "scene.json", lambda staging: make_procedural_scene(staging, n_views=n_views, size=size))
     return load_blender(root, downscale=downscale, max_views=max_views, near=near, far=far, image_cache=image_cache)

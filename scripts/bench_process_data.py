@@ -1,8 +1,13 @@
-"""nerf-process-data on a capture with published poses (fox's 50 photos): how many register, how far the recovered
-cameras are from the published ones after a similarity alignment, and the seconds of each stage.
+"""nerf-process-data on a capture with published poses (fox's 50 photos, or the procedural turntable): how many
+register, how far the recovered cameras are from the published ones after a similarity alignment, and the seconds
+of each stage.
 
-    .venv/bin/python scripts/bench_process_data.py [--root ../shared/data/nerfstudio/fox] [--mapper auto]
-        [--photos N] [--max-size 1600] [--mappers-over-seeds 0 1 2 3] [--work DIR] [--out FILE.json]
+    .venv/bin/python scripts/bench_process_data.py [--root ../shared/data/nerfstudio/fox | --turntable] [--masks]
+        [--mapper auto] [--photos N] [--max-size 1600] [--mappers-over-seeds 0 1 2 3] [--work DIR] [--out FILE.json]
+
+``--turntable``: the procedural turntable capture (rendered into the temporary folder; its reference poses are the
+cameras relative to the object). ``--masks``: hand ``<root>/masks`` to the command (``masks=``). The results table's
+posing rows are these JSONs: ``--out docs/results/posing/<name>.json``, then ``nerf-bench report``.
 
 The command's own settings (:func:`nerf_lightning.data.capture.process_capture`): one shared OPENCV camera, features
 read at ``--max-size`` px on the long side (1600), 8192 SIFT features an image, exhaustive matching (under 100
@@ -83,6 +88,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="\n".join(__doc__.splitlines()[1:]))
     parser.add_argument("--root", type=Path, default=SHARED_DATA / "nerfstudio" / "fox", help="a capture folder with images/ and transforms.json (default: fox)")
+    parser.add_argument("--turntable", action="store_true", help="the procedural turntable capture instead of --root")
+    parser.add_argument("--masks", action="store_true", help="give the command <root>/masks (masks=)")
     parser.add_argument("--mapper", choices=("auto", "global", "incremental"), default="auto")
     parser.add_argument("--photos", type=int, default=None, help="only this many photos, evenly spaced by name (default all)")
     parser.add_argument("--max-size", type=int, default=1600, help="the long side the features are read at (default 1600, the command's)")
@@ -90,6 +97,11 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None, help="where to write the processed capture (default: a temporary folder)")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
+    temporary = tempfile.TemporaryDirectory(prefix="bench_process_data_")
+    if args.turntable:
+        from nerf_lightning.data.formats import make_turntable_capture
+
+        args.root = make_turntable_capture(Path(temporary.name) / "turntable")
     if not (args.root / "images").is_dir() or not (args.root / "transforms.json").is_file():
         skip(f"data not found: {args.root} (images/ and transforms.json)")
     if importlib.util.find_spec("pycolmap") is None:
@@ -102,18 +114,27 @@ def main() -> None:
 
     from nerf_lightning.data.capture import compare_with_reference, process_capture
 
-    with tempfile.TemporaryDirectory(prefix="bench_process_data_") as temporary:
+    with temporary:
+        temporary = temporary.name
         images = chosen_photos(args.root / "images", args.photos, Path(temporary) / "photos")
         work = args.work or Path(temporary) / "capture"
+        masks = args.root / "masks" if args.masks else None
         started = time.perf_counter()
-        report = process_capture(images, work, mapper=args.mapper, max_size=args.max_size, progress=False, seed=0)
+        head = {**start_result("cpu"), "benchmark": "process_data", "root": str(args.root),
+                "capture": "procedural turntable" if args.turntable else args.root.name, "masks": args.masks}
+        try:  # min_registered=0: the photos that register are compared, however few
+            report = process_capture(images, work, mapper=args.mapper, max_size=args.max_size, progress=False, seed=0, masks=masks,
+                                     min_registered=0.0)
+        except ValueError as error:  # fewer than 3 registered: nothing to compare, which is the finding
+            finish({**head, "images_given": len(list(images.iterdir())), "registered": None, "failed": str(error),
+                    "total_s": time.perf_counter() - started}, args.out)
+            return
         total = time.perf_counter() - started
         errors = compare_with_reference(work, args.root / "transforms.json")
         seeds = (mappers_over_seeds(work / "images", args.root / "transforms.json", args.mappers_over_seeds, Path(temporary), args.max_size)
                  if args.mappers_over_seeds else [])
     result = {
-        **start_result("cpu"), "benchmark": "process_data", "root": str(args.root),
-        "pycolmap": pycolmap.__version__, "pycolmap_cuda": bool(getattr(pycolmap, "has_cuda", False)),
+        **head, "pycolmap": pycolmap.__version__, "pycolmap_cuda": bool(getattr(pycolmap, "has_cuda", False)),
         "images_given": report["images_given"], "registered": report["registered"], "unregistered": report["unregistered"],
         "compared_with_published": errors["compared"],
         **{key: errors[key] for key in ("median_position_error_percent_of_spread", "max_position_error_percent_of_spread",

@@ -115,7 +115,7 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[
         scored = json.loads((output_dir / "eval.json").read_text())
         curve.append({"minutes": mark["minutes"], "step": mark["step"], "training_seconds": mark["training_seconds"],
                       "psnr": scored["mean"].get("psnr"), "ssim": scored["mean"].get("ssim"),
-                      "depth_error": scored["mean"].get("depth_error"), "seconds_per_frame": scored.get("seconds_per_frame"),
+                      "psnr_masked": scored["mean"].get("psnr_masked"), "depth_error": scored["mean"].get("depth_error"), "seconds_per_frame": scored.get("seconds_per_frame"),
                       "views": scored["views"], "frame_size": scored.get("frame_size")})
     last = curve[-1]
     # the commands as a user types them, with the data where the suite names it
@@ -127,7 +127,7 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[
         "data": row.data, "overrides": list(row.overrides), "device": row.device,
         "steps": last["step"], "training_minutes": round(last["training_seconds"] / 60, 2),
         "seconds_per_step": round(last["training_seconds"] / max(last["step"], 1), 4),
-        "psnr": last["psnr"], "ssim": last["ssim"], "depth_error": last["depth_error"],
+        "psnr": last["psnr"], "ssim": last["ssim"], "psnr_masked": last["psnr_masked"], "depth_error": last["depth_error"],
         "seconds_per_frame": last["seconds_per_frame"], "frame_size": last["frame_size"], "views": last["views"],
         "samples_per_ray": metrics.get("train/samples_per_ray"), "curve": curve,
         "wall_seconds": round(time.perf_counter() - started, 1), "wall_seconds_training": round(wall_train, 1),

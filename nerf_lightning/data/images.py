@@ -14,18 +14,24 @@ import torch
 import torch.nn.functional as F
 
 
+def read_pixels(path: Path, what: str) -> np.ndarray:
+    """The pixels of an image file as imageio reads them; FileNotFoundError or ValueError naming the file (as an
+    ``image`` or a ``mask``: ``what``) when it is missing or cannot be read."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} file not found: {path}")
+    try:
+        return iio.imread(path)
+    except Exception as error:  # imageio raises many types for corrupt or truncated files
+        raise ValueError(f"could not read {what} {path}: {error}") from error
+
+
 def load_image(path: str | Path, background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> torch.Tensor:
     """Read a PNG or JPG as (H, W, 3) float32 in [0, 1]; alpha is composited onto ``background``.
 
     Raises FileNotFoundError or ValueError naming the file when it is missing, unreadable or not an image.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image file not found: {path}")
-    try:
-        array = iio.imread(path)
-    except Exception as error:  # imageio raises many types for corrupt or truncated files
-        raise ValueError(f"could not read image {path}: {error}") from error
+    array = read_pixels(path, "image")
     if array.dtype == np.uint8:
         image = torch.from_numpy(array.astype(np.float32) / 255.0)
     elif array.dtype == np.uint16:
@@ -57,12 +63,7 @@ def load_mask(path: str | Path, size: tuple[int, int] | None = None, downscale_b
     Raises FileNotFoundError or ValueError naming the file when it is missing, unreadable or of another size.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"mask file not found: {path}")
-    try:
-        array = iio.imread(path)
-    except Exception as error:  # imageio raises many types for corrupt or truncated files
-        raise ValueError(f"could not read mask {path}: {error}") from error
+    array = read_pixels(path, "mask")
     if array.ndim == 3:
         array = array[..., -1] if array.shape[-1] in (2, 4) and array[..., -1].min() < array[..., -1].max() else array[..., 0]
     if array.ndim != 2 or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating) or array.dtype == np.bool_):

@@ -1,0 +1,92 @@
+"""Counting the operations that make the host wait for a GPU: a value read back (``.item()``, ``int()``, ``bool()``
+of a device tensor), a size that depends on the data (``nonzero``, a boolean mask's index, ``masked_select``). On a
+GPU each one stops Python until every kernel queued before it has run, so a training step with none of them keeps
+the device busy while Python queues the next step. They are counted on any device (the CPU included), so a test
+needs no GPU to say that a step has none.
+
+    with HostSyncs() as syncs:
+        loss = model.training_step(batch, 0)
+        loss.backward()
+    syncs.counts  # {"aten.nonzero": 2, ...}
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from nerf_lightning.io import write_json
+
+# the ops whose result the host must wait for (a value, or a size that depends on the values)
+WAITING_OPS = {
+    "aten._local_scalar_dense": "a value read back (.item(), int(), float(), bool() of a tensor)",
+    "aten.nonzero": "nonzero without a size",
+    "aten.masked_select": "a boolean mask's selection",
+    "aten.is_nonzero": "bool() of a tensor",
+    "aten.item": "item()",
+    "aten.unique": "unique",
+    "aten._unique2": "unique",
+    "aten.bincount": "bincount (its size depends on the largest value)",
+    "aten.repeat_interleave": "repeat_interleave without output_size",
+}
+
+
+def _is_boolean_index(func: Any, args: tuple) -> bool:
+    """``x[mask]`` (aten.index with a bool index), whose size depends on the mask's values."""
+    if func.__name__.split(".")[0] not in ("index", "index_put", "index_put_", "_index_put_impl_"):
+        return False
+    indices = args[1] if len(args) > 1 else ()
+    return any(isinstance(index, torch.Tensor) and index.dtype == torch.bool for index in indices or ())
+
+
+class HostSyncs(TorchDispatchMode):
+    """A dispatch mode that counts, by op name, the ops that make the host wait (``WAITING_OPS``, and indexing with a
+    boolean mask as ``aten.index (boolean)``); ``counts`` holds them once the ``with`` block has run."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.counts: Counter[str] = Counter()
+
+    def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        name = f"aten.{func.__name__.split('.')[0]}"
+        if name in WAITING_OPS and not (name == "aten.repeat_interleave" and (kwargs or {}).get("output_size") is not None):
+            self.counts[name] += 1
+        elif _is_boolean_index(func, args):
+            self.counts[f"{name} (boolean)"] += 1
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+
+class CountHostSyncs(L.Callback):
+    """A Lightning callback counting :class:`HostSyncs` in each training step (``training_step``, backward and the
+    optimiser step: from ``on_train_batch_start`` to ``on_train_batch_end``) into ``steps``, one Counter a step, and
+    writing them to ``path`` (a JSON list) when training ends:
+    ``+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: syncs.json}``."""
+
+    def __init__(self, path: str | None = None) -> None:
+        self.path = path
+        self.steps: list[Counter[str]] = []
+        self._mode: HostSyncs | None = None
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
+        self._mode = HostSyncs()
+        self._mode.__enter__()
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+        if self._mode is not None:
+            self._mode.__exit__(None, None, None)
+            self.steps.append(self._mode.counts)
+            self._mode = None
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.path is not None:
+            write_json(Path(self.path), [dict(counts) for counts in self.steps])

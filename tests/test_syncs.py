@@ -1,0 +1,30 @@
+"""HostSyncs counts the ops that make the host wait for a GPU, on any device: a value read back, nonzero, a
+boolean mask's index; and none for ops of fixed shapes."""
+
+import torch
+
+from nerf_lightning.syncs import HostSyncs
+
+
+def test_each_kind_of_wait_is_counted_by_name():
+    x = torch.rand(100)
+    with HostSyncs() as syncs:
+        _ = float(x.sum())  # a value read back
+        _ = x.nonzero()  # a size that depends on the values
+        _ = x[x > 0.5]  # a boolean mask's index
+        _ = torch.bincount((x * 10).long())
+        _ = torch.repeat_interleave(torch.arange(3), torch.tensor([1, 2, 3]))
+    assert syncs.counts["aten._local_scalar_dense"] == 1 and syncs.counts["aten.index (boolean)"] == 1
+    assert syncs.counts["aten.bincount"] == 1 and syncs.counts["aten.repeat_interleave"] == 1
+    assert syncs.counts["aten.nonzero"] >= 1
+
+
+def test_fixed_shape_ops_are_not_counted():
+    x = torch.rand(100, requires_grad=True)
+    with HostSyncs() as syncs:
+        mask = x > 0.5
+        y = torch.where(mask, x, 0.0).cumsum(0)
+        _ = torch.nonzero_static(mask, size=100)  # a size given: no wait
+        _ = torch.repeat_interleave(torch.arange(3), torch.tensor([1, 2, 3]), output_size=6)
+        y[torch.tensor([1, 5])].sum().backward()  # an index of integers
+    assert syncs.total == 0, syncs.counts

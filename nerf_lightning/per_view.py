@@ -39,7 +39,11 @@ class PerViewTable(nn.Module):
             self.rows = nn.Parameter(fill(n_views, self.width, device=self.rows.device))
 
     def check_views(self, view_indices: torch.Tensor) -> None:
-        """IndexError naming the first index beyond the table (or a table not sized yet)."""
+        """IndexError naming the first index beyond the table (or a table not sized yet). Not in a training step with
+        gradients, whose indices the datamodule draws among the training views: reading the largest back would make
+        the host wait for the device every step."""
+        if self.rows.shape[0] > 0 and self.training and torch.is_grad_enabled():
+            return
         if self.rows.shape[0] == 0 or int(view_indices.max()) >= self.rows.shape[0]:
             raise IndexError(f"camera index {int(view_indices.max())} is beyond the {self.rows.shape[0]} training views of this "
                              f"{type(self).__name__}" + ("" if self.rows.shape[0] else ": resize(n_training_views) first"))

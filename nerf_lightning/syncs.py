@@ -69,13 +69,18 @@ class HostSyncs(TorchDispatchMode):
 class CountHostSyncs(L.Callback):
     """A Lightning callback counting :class:`HostSyncs` in each training step (``training_step``, backward and the
     optimiser step: from ``on_train_batch_start`` to ``on_train_batch_end``) into ``steps``, one Counter a step, and
-    writing them to ``path`` (a JSON list) when training ends:
+    writing them to ``path`` (a JSON list) when training ends; ``skip_nan_guard`` turns the model's NaN guard off
+    (``on_before_backward``, which reads the loss back):
     ``+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: syncs.json}``."""
 
-    def __init__(self, path: str | None = None) -> None:
-        self.path = path
+    def __init__(self, path: str | None = None, skip_nan_guard: bool = False) -> None:
+        self.path, self.skip_nan_guard = path, skip_nan_guard
         self.steps: list[Counter[str]] = []
         self._mode: HostSyncs | None = None
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if self.skip_nan_guard:  # to count the rest: the guard reads the loss back (every step on a CPU)
+            pl_module.on_before_backward = lambda loss: None
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
         self._mode = HostSyncs()

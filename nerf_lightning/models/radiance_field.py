@@ -210,7 +210,11 @@ class RadianceFieldModule(SceneModule):
             rgb = rgb + (1.0 - out["accumulation"])[:, None] * (colour - self.space.background.to(rgb))
             if "mask" in batch:  # data.masks=background: outside the object the target is that colour too
                 target = torch.where(batch["mask"][:, None], target, colour)
-        mse = F.mse_loss(rgb, target)
+        complete = out["samples"].extras.get("complete")  # a fixed sample capacity: rays cut short stay out of the loss
+        if complete is None:
+            mse = F.mse_loss(rgb, target)
+        else:
+            mse = ((rgb - target).square().mean(dim=1) * complete).sum() / complete.sum().clamp(min=1)
         extra_losses = self.sampler.losses(out["samples"], out, target)
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
@@ -220,7 +224,7 @@ class RadianceFieldModule(SceneModule):
         loss = mse + sum(extra_losses.values())
         if not loss.requires_grad:  # no ray of the batch met an occupied cell: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
-        self.log("train/samples_per_ray", float(out["n_evaluated"]) / batch["rays_o"].shape[0], on_step=True)
+        self.log("train/samples_per_ray", out["n_evaluated"] / batch["rays_o"].shape[0], on_step=True)  # a tensor: not read back here
         for name, value in extra_losses.items():
             self.log(f"train/loss_{name}", value.detach(), on_step=True)
         self.log("train/loss", loss, on_step=True, on_epoch=False)

@@ -166,6 +166,8 @@ def march_rays(
     alpha_threshold: float = 0.0,
     early_stop_eps: float = 0.0,
     generator: torch.Generator | None = None,
+    capacity: int | None = None,
+    reach: float | None = None,
 ) -> RaySamples:
     """March (N, 3) rays from ``t_enter`` to ``t_exit`` (N,) (see :meth:`SceneSpace.ray_range
     <nerf_lightning.geometry.space.SceneSpace.ray_range>`); packed samples of the steps in occupied cells.
@@ -177,7 +179,15 @@ def march_rays(
     through ``to_field`` (the scene's contraction, if any), lies in an occupied cell. With ``density_fn`` (field-space
     points -> densities) the kept steps are evaluated once without gradients, and those with opacity below
     ``alpha_threshold`` or transmittance below ``early_stop_eps`` (the ray has already ended) are dropped as well.
+
+    With ``capacity`` (a fixed-shape step: nothing here waits for the device) the steps are laid out ``reach /
+    step_size`` a ray, ``reach`` the longest a ray can be in the sampled range (the grid box's diagonal), and the
+    samples are exactly ``capacity`` (:attr:`RaySamples.slots`): the occupied steps in order, then padding of zero
+    width, or, where more steps are occupied, the first ``capacity`` of them; ``extras["complete"]`` (N,) bool says
+    which rays kept all their steps, so a loss can leave the others out. No cone marching nor density pass then.
     """
+    if capacity is not None:
+        return _march_fixed(grid, rays_o, rays_d, t_enter, t_exit, step_size, perturb, to_field, generator, capacity, reach)
     n_rays = rays_o.shape[0]
     to_field = to_field or (lambda points: points)
     if perturb:
@@ -209,3 +219,29 @@ def march_rays(
         composited = weights_from_optical_depth_packed(density * (samples.t_ends - samples.t_starts), ray_indices, n_rays)
         keep = (composited.alpha >= alpha_threshold) & (composited.transmittance >= early_stop_eps)
     return RaySamples(ray_indices[keep], samples.t_starts[keep], samples.t_ends[keep], n_rays)
+
+
+def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor,
+                 step_size: float, perturb: bool, to_field: Callable[[torch.Tensor], torch.Tensor] | None,
+                 generator: torch.Generator | None, capacity: int, reach: float | None) -> RaySamples:
+    """:func:`march_rays` into ``capacity`` samples on an (N + 1, S) table of steps, S = ceil(reach / step_size)."""
+    if reach is None or reach <= 0:
+        raise ValueError("march_rays: a fixed capacity needs reach, the longest a ray can be in the sampled range")
+    n_rays, width = rays_o.shape[0], math.ceil(reach / step_size)
+    to_field = to_field or (lambda points: points)
+    shift = (torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype, device=rays_o.device) if perturb
+             else torch.zeros(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device))
+    steps = torch.arange(width, dtype=rays_o.dtype, device=rays_o.device)
+    t_starts = t_enter[:, None] + (steps + shift) * step_size  # (N, S)
+    t_ends = torch.minimum(t_starts + step_size, t_exit[:, None])
+    midpoints = rays_o[:, None, :] + rays_d[:, None, :] * (0.5 * (t_starts + t_ends))[..., None]
+    keep = (t_starts < t_exit[:, None]) & grid.occupied(to_field(midpoints))  # (N, S)
+    # the kept steps' places in the table, in order, then the padding's: the first cell of the padding row N
+    cells = torch.nonzero_static(keep.reshape(-1), size=capacity, fill_value=n_rays * width)[:, 0]
+    padded = torch.zeros(1, dtype=t_starts.dtype, device=t_starts.device)
+    starts, ends = torch.cat([t_starts.reshape(-1), padded]), torch.cat([t_ends.reshape(-1), padded])
+    ray_indices = torch.div(cells, width, rounding_mode="floor")
+    # the ray of the last sample kept lost its later steps where the buffer is full: it and the rays after are incomplete
+    cut = torch.where(cells[-1] < n_rays * width, ray_indices[-1], n_rays)
+    complete = torch.arange(n_rays, device=rays_o.device) < cut
+    return RaySamples(ray_indices, starts[cells], ends[cells], n_rays, {"complete": complete}, cells - ray_indices * width, width)

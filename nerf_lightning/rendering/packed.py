@@ -28,6 +28,9 @@ class RaySamples:
         n_rays: N.
         extras: what the sampler computed on the way and hands to its own :meth:`RaySampler.losses` (e.g. the coarse
             network's colours (N, 3)), kept out of the renderer.
+        slots, width: for samples of a fixed count (a fixed-shape step, :class:`~nerf_lightning.rendering.renderer.VolumeRenderer`'s
+            ``fixed_shapes``): each sample's column (M,) in an (N + 1, width) table of the rays' steps, whose last row
+            holds padding (samples of zero width, ray index N, that add nothing); None for samples of any count.
     """
 
     ray_indices: torch.Tensor
@@ -35,6 +38,8 @@ class RaySamples:
     t_ends: torch.Tensor
     n_rays: int
     extras: dict[str, Any] = field(default_factory=dict)
+    slots: torch.Tensor | None = None
+    width: int | None = None
 
     def __len__(self) -> int:
         return int(self.ray_indices.shape[0])
@@ -43,8 +48,9 @@ class RaySamples:
     def from_edges(cls, edges: torch.Tensor, **extras: Any) -> RaySamples:
         """(N, S + 1) sorted interval edges of every ray -> the N x S intervals, packed."""
         n_rays, n_samples = edges.shape[0], edges.shape[1] - 1
-        ray_indices = torch.arange(n_rays, device=edges.device).repeat_interleave(n_samples)
-        return cls(ray_indices, edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1), n_rays, dict(extras))
+        ray_indices = torch.arange(n_rays, device=edges.device).repeat_interleave(n_samples, output_size=n_rays * n_samples)
+        slots = torch.arange(n_samples, device=edges.device).repeat(n_rays)
+        return cls(ray_indices, edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1), n_rays, dict(extras), slots, n_samples)
 
 
 def composite_packed(

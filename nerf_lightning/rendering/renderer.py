@@ -30,14 +30,22 @@ class VolumeRenderer:
     many gradients as the subject: without the scaling, a proposal sampler, which samples there densely, lets
     each camera paint its picture on a fog just in front of it (the "floaters" of real captures). d is in the
     sampling space's units: about the distance from the cameras to the subject (1 in a normalised capture).
+
+    ``fixed_shapes`` (GPU presets): samples of a fixed count laid out on a table (:attr:`RaySamples.slots`, from
+    the proposal sampler or an occupancy grid with a ``capacity``) are rendered in one pass, every sample evaluated
+    and composited along the table's rows, so that no size depends on the data and the host never waits for the
+    device (the rounds read each round's live rays back). On a CPU the rounds are the faster: stopping spent rays
+    saves more work than the waits cost.
     """
 
-    def __init__(self, early_stop_eps: float = 1e-4, samples_per_round: int = 16, gradient_scaling_distance: float = 0.0) -> None:
+    def __init__(self, early_stop_eps: float = 1e-4, samples_per_round: int = 16, gradient_scaling_distance: float = 0.0,
+                 fixed_shapes: bool = False) -> None:
         if samples_per_round < 1 or early_stop_eps < 0 or gradient_scaling_distance < 0:
             raise ValueError(f"VolumeRenderer needs samples_per_round >= 1, early_stop_eps >= 0 and gradient_scaling_distance >= 0, "
                              f"got {samples_per_round}, {early_stop_eps}, {gradient_scaling_distance}")
         self.early_stop_eps, self.samples_per_round = early_stop_eps, samples_per_round
         self.gradient_scaling_distance = gradient_scaling_distance
+        self.fixed_shapes = fixed_shapes
 
     def __call__(self, field: Field, rays: Rays, samples: RaySamples, space: SceneSpace) -> dict[str, torch.Tensor]:
         """Render N rays from their packed samples.
@@ -53,6 +61,8 @@ class VolumeRenderer:
             which a ray ends, given that it ends; ``accumulation`` (N,); ``weights`` (M,) each sample's weight
             (0 for samples never evaluated); ``n_evaluated``, how many samples the field saw (an int).
         """
+        if self.fixed_shapes and samples.slots is not None:
+            return self._render_table(field, rays, samples, space)
         n_rays, k = samples.n_rays, self.samples_per_round
         device = rays.origins.device
         counts = torch.bincount(samples.ray_indices, minlength=n_rays)
@@ -100,9 +110,39 @@ class VolumeRenderer:
             "weights": weights_all, "n_evaluated": sum(len(ids) for ids in evaluated_ids),
         }
 
+    def _render_table(self, field: Field, rays: Rays, samples: RaySamples, space: SceneSpace) -> dict[str, torch.Tensor]:
+        """Every sample in one pass, composited along the rows of the (N + 1, width) table (see the class)."""
+        n_rays, width = samples.n_rays, samples.width
+        cells = samples.ray_indices * width + samples.slots  # (M,) the padding's in row N
+        ray_of = samples.ray_indices.clamp(max=n_rays - 1)  # the padding evaluated on ray N - 1: zero width, no effect
+        starts, ends = samples.t_starts, samples.t_ends
+        mids = 0.5 * (starts + ends)
+        points, viewdirs = space.to_field(rays.points(ray_of, mids)), rays.viewdirs[ray_of]
+        if getattr(field, "appearance", None) is not None:
+            out = field(points, viewdirs, None if rays.camera_indices is None else rays.camera_indices[ray_of])
+        else:
+            out = field(points, viewdirs)
+        if self.gradient_scaling_distance > 0 and torch.is_grad_enabled():
+            scale = (mids / self.gradient_scaling_distance).square().clamp(max=1.0)
+            out = {"density": scale_gradient(out["density"], scale), "rgb": scale_gradient(out["rgb"], scale[:, None])}
+        dtype = torch.promote_types(out["rgb"].dtype, torch.float32)
+
+        def table(values: torch.Tensor) -> torch.Tensor:  # (M, ...) -> (N, width, ...), the padding row dropped
+            full = values.new_zeros((n_rays + 1) * width, *values.shape[1:]).index_put((cells,), values)
+            return full.view(n_rays + 1, width, *values.shape[1:])[:n_rays]
+
+        composited = weights_from_optical_depth(table((out["density"].to(dtype) * (ends - starts).to(dtype))))
+        weights = composited.weights  # (N, width)
+        accumulation = weights.sum(dim=1)
+        colour = (weights[..., None] * table(out["rgb"].to(dtype))).sum(dim=1) + (1.0 - accumulation)[:, None] * space.background.to(dtype)
+        depth = (weights * table(mids.to(dtype))).sum(dim=1) / accumulation.clamp(min=1e-10)
+        sample_weights = torch.cat([weights.reshape(-1), weights.new_zeros(width)]).index_select(0, cells)
+        return {"rgb": colour, "depth": depth, "accumulation": accumulation, "weights": sample_weights,
+                "n_evaluated": (ends > starts).sum()}
+
     def __repr__(self) -> str:
         return (f"VolumeRenderer(early_stop_eps={self.early_stop_eps:g}, samples_per_round={self.samples_per_round}, "
-                f"gradient_scaling_distance={self.gradient_scaling_distance:g})")
+                f"gradient_scaling_distance={self.gradient_scaling_distance:g}, fixed_shapes={self.fixed_shapes})")
 
 
 def scale_gradient(values: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:

@@ -66,6 +66,7 @@ def test_the_table_loads_at_its_saved_size_and_refuses_an_unknown_image():
                       hidden_width=16, geometry_features=7, appearance_dim=8)
     fresh.load_state_dict(trained.state_dict())
     torch.testing.assert_close(fresh.appearance.rows, trained.appearance.rows)
+    fresh.eval()  # outside a training step (whose indices the datamodule draws; the check would make a GPU wait)
     with pytest.raises(IndexError, match="camera index 7 is beyond the 7 training views of this AppearanceEmbedding"):
         fresh.appearance(torch.tensor([7]), 1)
     with pytest.raises(IndexError, match="resize"):

@@ -46,6 +46,7 @@ def test_corrections_load_at_their_saved_size_and_an_unknown_view_is_refused():
     fresh = CameraRefinement()
     fresh.load_state_dict(trained.state_dict())
     torch.testing.assert_close(fresh.rows, trained.rows)
+    fresh.eval()  # outside a training step (whose indices the datamodule draws; the check would make a GPU wait)
     with pytest.raises(IndexError, match="camera index 5 is beyond the 5 training views of this CameraRefinement"):
         fresh(torch.zeros(1, 3), torch.ones(1, 3), torch.tensor([5]))
     with pytest.raises(ValueError, match="lr > 0"):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import torch
+
 from nerf_lightning.fields.base import Field
 from nerf_lightning.geometry.space import Rays, SceneSpace
 from nerf_lightning.rendering.occupancy import OccupancyGrid, march_rays
@@ -18,24 +20,40 @@ class OccupancyGridSampler(RaySampler):
         cone_angle: > 0 makes the steps grow with the distance, ``max(step_size, cone_angle * t)`` (Instant-NGP's
             cone tracing), so that an unbounded scene's far background costs few samples.
         alpha_threshold: > 0 also drops steps whose opacity is below it, at the cost of a density pass.
+        capacity: samples a training step, a fixed number (a fixed-shape step, for the renderer's ``fixed_shapes``:
+            the occupied steps, padded, or the first ``capacity`` of them, the rays cut short left out of the loss);
+            None: as many as the rays have. Not with ``cone_angle`` or ``alpha_threshold``.
     """
 
-    def __init__(self, grid: OccupancyGrid, step_size: float = 0.02, cone_angle: float = 0.0, alpha_threshold: float = 0.0) -> None:
+    def __init__(self, grid: OccupancyGrid, step_size: float = 0.02, cone_angle: float = 0.0, alpha_threshold: float = 0.0,
+                 capacity: int | None = None) -> None:
         super().__init__()
         if step_size <= 0 or cone_angle < 0:
             raise ValueError(f"OccupancyGridSampler needs step_size > 0 and cone_angle >= 0, got {step_size}, {cone_angle}")
+        if capacity is not None and (capacity < 1 or cone_angle > 0 or alpha_threshold > 0):
+            raise ValueError(f"model.sampler.capacity={capacity}: a fixed capacity needs capacity >= 1, cone_angle=0 and "
+                             f"alpha_threshold=0 (got {cone_angle:g} and {alpha_threshold:g})")
         self.grid = grid
         self.step_size, self.cone_angle, self.alpha_threshold = step_size, cone_angle, alpha_threshold
+        self.capacity = capacity
+        low, high = grid.aabb[:3].double(), grid.aabb[3:].double()
+        self.reach = float((high - low).norm())  # the longest a ray can be inside the grid's box, read once here
 
     def sample(self, rays: Rays, space: SceneSpace, field: Field, perturb: bool) -> RaySamples:
         t_enter, t_exit = space.ray_range(rays, self.grid.aabb)
+        # a fixed capacity in training, where the step is to keep the device busy; evaluation renders every step
+        capacity = self.capacity if perturb and torch.is_grad_enabled() else None
+        if capacity is not None and (space.contraction is not None or space.ndc is not None):
+            raise ValueError("model.sampler.capacity needs a scene space without contraction or NDC (its steps' reach is the grid's box)")
         return march_rays(
             self.grid, rays.origins, rays.directions, t_enter, t_exit, self.step_size, perturb, self.cone_angle, space.to_field,
             density_fn=field.density if self.alpha_threshold > 0 else None, alpha_threshold=self.alpha_threshold,
+            capacity=capacity, reach=self.reach,
         )
 
     def update(self, step: int, field: Field) -> None:
         self.grid.update(step, field.density, self.step_size)
 
     def extra_repr(self) -> str:
-        return f"step_size={self.step_size:g}, cone_angle={self.cone_angle:g}, alpha_threshold={self.alpha_threshold:g}"
+        capacity = f", capacity={self.capacity}" if self.capacity is not None else ""
+        return f"step_size={self.step_size:g}, cone_angle={self.cone_angle:g}, alpha_threshold={self.alpha_threshold:g}{capacity}"

@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import nn
 
-from nerf_lightning.rendering.compositing import weights_from_optical_depth_packed
+from nerf_lightning.rendering.compositing import weights_from_optical_depth, weights_from_optical_depth_packed
 from nerf_lightning.rendering.packed import RaySamples
 
 # points (M, 3) -> densities (M,)
@@ -168,6 +168,7 @@ def march_rays(
     generator: torch.Generator | None = None,
     capacity: int | None = None,
     reach: float | None = None,
+    march_capacity: int | None = None,
 ) -> RaySamples:
     """March (N, 3) rays from ``t_enter`` to ``t_exit`` (N,) (see :meth:`SceneSpace.ray_range
     <nerf_lightning.geometry.space.SceneSpace.ray_range>`); packed samples of the steps in occupied cells.
@@ -184,10 +185,15 @@ def march_rays(
     step_size`` a ray, ``reach`` the longest a ray can be in the sampled range (the grid box's diagonal), and the
     samples are exactly ``capacity`` (:attr:`RaySamples.slots`): the occupied steps in order, then padding of zero
     width, or, where more steps are occupied, the first ``capacity`` of them; ``extras["complete"]`` (N,) bool says
-    which rays kept all their steps, so a loss can leave the others out. No cone marching nor density pass then.
+    which rays kept all their steps, so a loss can leave the others out. With ``density_fn`` the occupied steps first
+    fill ``march_capacity`` samples, evaluated once without gradients and composited along the table, and those that
+    pass ``alpha_threshold`` and ``early_stop_eps`` fill the ``capacity``. No cone marching then.
     """
     if capacity is not None:
-        return _march_fixed(grid, rays_o, rays_d, t_enter, t_exit, step_size, perturb, to_field, generator, capacity, reach)
+        prune = density_fn if alpha_threshold > 0.0 or early_stop_eps > 0.0 else None
+        samples = _march_fixed(grid, rays_o, rays_d, t_enter, t_exit, step_size, perturb, to_field, generator,
+                               march_capacity or capacity if prune is not None else capacity, reach)
+        return samples if prune is None else _pruned(samples, rays_o, rays_d, to_field, prune, alpha_threshold, early_stop_eps, capacity)
     n_rays = rays_o.shape[0]
     to_field = to_field or (lambda points: points)
     if perturb:
@@ -245,3 +251,32 @@ def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor
     cut = torch.where(cells[-1] < n_rays * width, ray_indices[-1], n_rays)
     complete = torch.arange(n_rays, device=rays_o.device) < cut
     return RaySamples(ray_indices, starts[cells], ends[cells], n_rays, {"complete": complete}, cells - ray_indices * width, width)
+
+
+def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_field: Callable[[torch.Tensor], torch.Tensor] | None,
+            density_fn: DensityFn, alpha_threshold: float, early_stop_eps: float, capacity: int) -> RaySamples:
+    """The fixed-capacity ``samples`` with opacity at least ``alpha_threshold`` and transmittance at least
+    ``early_stop_eps`` (one density pass without gradients, composited along the table), in ``capacity`` samples."""
+    n_rays, width = samples.n_rays, samples.width
+    to_field = to_field or (lambda points: points)
+    cells = samples.ray_indices * width + samples.slots
+    with torch.no_grad():
+        ray_of = samples.ray_indices.clamp(max=n_rays - 1)
+        mids = 0.5 * (samples.t_starts + samples.t_ends)
+        density = density_fn(to_field(rays_o[ray_of] + rays_d[ray_of] * mids[:, None])).float()
+        tau = (density * (samples.t_ends - samples.t_starts).float())
+        table = tau.new_zeros((n_rays + 1) * width).index_put((cells,), tau).view(n_rays + 1, width)
+        composited = weights_from_optical_depth(table)
+        alpha = composited.alpha.reshape(-1).index_select(0, cells)
+        transmittance = composited.transmittance.reshape(-1).index_select(0, cells)
+        keep = (samples.t_ends > samples.t_starts) & (alpha >= alpha_threshold) & (transmittance >= early_stop_eps)
+    index = torch.nonzero_static(keep, size=capacity, fill_value=len(samples))[:, 0]  # the padding: one more, zero-width
+    padded = torch.cat([cells, cells.new_full((1,), n_rays * width)])
+    starts = torch.cat([samples.t_starts, samples.t_starts.new_zeros(1)])[index]
+    ends = torch.cat([samples.t_ends, samples.t_ends.new_zeros(1)])[index]
+    kept_cells = padded[index]
+    ray_indices = torch.div(kept_cells, width, rounding_mode="floor")
+    # rays cut short: those the first buffer cut, and those whose kept samples this buffer cannot all hold
+    cut = torch.where(index[-1] < len(samples), ray_indices[-1], n_rays)
+    complete = samples.extras["complete"] & (torch.arange(n_rays, device=cut.device) < cut)
+    return RaySamples(ray_indices, starts, ends, n_rays, {"complete": complete}, kept_cells - ray_indices * width, width)

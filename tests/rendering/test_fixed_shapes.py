@@ -34,6 +34,24 @@ def test_a_fixed_capacity_holds_the_same_steps_in_order_then_padding_of_zero_wid
     assert short.extras["complete"].tolist() == [ray < cut for ray in range(100)]
 
 
+def test_the_density_pass_keeps_what_the_variable_march_keeps_in_a_fixed_capacity():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8)
+    field = BallField()
+    rays_o, rays_d = rays_towards_origin(64, seed=7, spread=0.2)
+    space = SceneSpace(2.0, 6.0)
+    rays = space.rays(rays_o, rays_d)
+    t_enter, t_exit = space.ray_range(rays, grid.aabb)
+    options = {"density_fn": field.density, "alpha_threshold": 1e-3, "early_stop_eps": 1e-4}
+    variable = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, **options)
+    everything = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False)
+    assert len(variable) < 0.6 * len(everything)  # the steps behind the ball are dropped
+    fixed = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, capacity=len(variable) + 10, reach=2.0 * 3.0**0.5,
+                       march_capacity=len(everything) + 10, **options)
+    for name in ("ray_indices", "t_starts", "t_ends"):
+        torch.testing.assert_close(getattr(fixed, name)[: len(variable)], getattr(variable, name))
+    assert not (fixed.t_ends > fixed.t_starts)[len(variable):].any() and bool(fixed.extras["complete"].all())
+
+
 @pytest.mark.parametrize("sampler", ["occupancy", "dense"])
 def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampler):
     grid = OccupancyGrid(UNIT_BOX, resolution=8)
@@ -74,7 +92,7 @@ PRESETS = {
     "nerfacto_360_gpu": ["experiment=nerfacto_360_gpu", "data=turntable", "data.scene.size=32", "data.scene.n_photos=16",
                          "model.renderer.fixed_shapes=true"],
     "fast_blender_gpu": ["experiment=fast_blender_gpu", "data=procedural", "data.scene.size=32", "model.renderer.fixed_shapes=true",
-                         "model.sampler.capacity=65536"],
+                         "model.sampler.capacity=16384", "model.sampler.march_capacity=65536"],
 }
 
 

@@ -49,9 +49,12 @@ class RayDataModule(SceneDataModule):
         self.rgb = self.scene.train.images.reshape(-1, 3)  # (N*H*W, 3) uint8, a view of the images (in memory or mapped): no copy
         self.drawable: torch.Tensor | None = None  # (P,) the pixels rays are drawn from where not all of them
         if self.mask_mode == "exclude":
-            flat = self.scene.train.masks.reshape(-1)
-            index_type = torch.int32 if flat.numel() < 2**31 else torch.int64  # half the memory of a pixel list
-            self.drawable = torch.nonzero(flat).squeeze(1).to(index_type)
+            masks = self.scene.train.masks
+            pixels = masks.shape[1] * masks.shape[2]
+            index_type = torch.int32 if masks.numel() < 2**31 else torch.int64  # half the memory of a pixel list
+            # view by view: nonzero's int64 list is then one view's at a time
+            self.drawable = torch.cat([torch.nonzero(mask.reshape(-1)).squeeze(1).to(index_type) + view * pixels
+                                       for view, mask in enumerate(masks)])
             if not len(self.drawable):
                 raise ValueError(f"data.masks=exclude: the masks of {self.scene.source or 'the scene'} cover no pixel of the training views")
 

@@ -210,7 +210,8 @@ class RadianceFieldModule(SceneModule):
             rgb = rgb + (1.0 - out["accumulation"])[:, None] * (colour - self.space.background.to(rgb))
             if "mask" in batch:  # data.masks=background: outside the object the target is that colour too
                 target = torch.where(batch["mask"][:, None], target, colour)
-        complete = out["samples"].extras.get("complete")  # a fixed sample capacity: rays cut short stay out of the loss
+        samples = out.get("samples")
+        complete = samples.extras.get("complete") if samples is not None else None  # a fixed capacity: rays cut short stay out of the loss
         if complete is None:
             mse = F.mse_loss(rgb, target)
         else:

@@ -65,7 +65,8 @@ class VolumeRenderer:
             return self._render_table(field, rays, samples, space)
         n_rays, k = samples.n_rays, self.samples_per_round
         device = rays.origins.device
-        counts = torch.bincount(samples.ray_indices, minlength=n_rays)
+        # [:n_rays]: a fixed capacity's padding (ray index N, last) is never a live ray's
+        counts = torch.bincount(samples.ray_indices, minlength=n_rays)[:n_rays]
         offsets = torch.cumsum(counts, 0) - counts
         slots = torch.arange(k, device=device)
         transmittance = rays.origins.new_ones(n_rays)

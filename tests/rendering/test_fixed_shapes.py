@@ -80,6 +80,8 @@ def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampl
     torch.testing.assert_close(table["weights"][:real], rounds["weights"])
     assert not table["weights"][real:].any()
     torch.testing.assert_close(table_grad, rounds_grad)
+    padded = VolumeRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, table_samples, space)  # the rounds skip padding
+    torch.testing.assert_close(padded["rgb"], rounds["rgb"])
     samples = table_samples
     assert int(table["n_evaluated"]) == int((samples.t_ends > samples.t_starts).sum())
 

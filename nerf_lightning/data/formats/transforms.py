@@ -279,7 +279,11 @@ def _masks(path: Path, frames: list[tuple[int, dict, Path]], sizes: dict[Path, t
         if not isinstance(frame["mask_path"], str):
             raise ValueError(f"{path}: frame {number}: 'mask_path' must be a file name, got {frame['mask_path']!r}")
         mask_paths.append(path.parent / frame["mask_path"])
-        image_of[mask_paths[-1]] = image_path
+        shared = image_of.setdefault(mask_paths[-1], image_path)
+        if shared != image_path and (sizes[shared] != sizes[image_path] or not all(
+                torch.equal(a, b) for a, b in zip(lenses[shared], lenses[image_path]))):
+            raise ValueError(f"{path}: frame {number}: 'mask_path' {frame['mask_path']} is also the mask of {shared.name}, whose "
+                             "size or lens differs: frames of different cameras need masks of their own")
 
     def decode(mask_path: Path) -> torch.Tensor:
         image_path = image_of[mask_path]

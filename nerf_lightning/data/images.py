@@ -64,13 +64,21 @@ def load_mask(path: str | Path, size: tuple[int, int] | None = None, downscale_b
     """
     path = Path(path)
     array = read_pixels(path, "mask")
-    if array.ndim == 3:
-        array = array[..., -1] if array.shape[-1] in (2, 4) and array[..., -1].min() < array[..., -1].max() else array[..., 0]
+    array = mask_channel(array)
     if array.ndim != 2 or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating) or array.dtype == np.bool_):
         raise ValueError(f"mask {path} has shape {tuple(array.shape)} of {array.dtype}; expected a grey or colour image")
     if size is not None and tuple(array.shape) != tuple(size):
         raise ValueError(f"mask {path} is {array.shape[1]}x{array.shape[0]} but its image is {size[1]}x{size[0]}: a mask must have its image's size")
     return downscale_mask(torch.from_numpy(np.ascontiguousarray(white_pixels(array))), downscale_by)
+
+
+def mask_channel(values: np.ndarray) -> np.ndarray:
+    """(H, W) or (H, W, C) values of a mask image -> (H, W): its alpha where it has one that varies (grey + alpha,
+    RGBA), else its first channel."""
+    if values.ndim != 3:
+        return values
+    alpha = values[..., -1]
+    return alpha if values.shape[-1] in (2, 4) and alpha.min() < alpha.max() else values[..., 0]
 
 
 def white_pixels(values: np.ndarray) -> np.ndarray:

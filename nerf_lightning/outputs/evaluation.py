@@ -18,9 +18,9 @@ from tqdm import tqdm
 
 from nerf_lightning.checkpoints import load_model, load_run_data
 from nerf_lightning.data.formats.transforms import load_transforms
-from nerf_lightning.data.image_stack import as_float_rgb
-from nerf_lightning.data.masks import composite_background, resolve_mode
+from nerf_lightning.data.masks import resolve_mode
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
+from nerf_lightning.data.scene_data import view_batch
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import image_metrics
 from nerf_lightning.models.contract import RendersCamera, require
@@ -73,10 +73,9 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
         frame = render_frame(model, views, index)  # on the CPU when it returns: the device has finished
         seconds = time.perf_counter() - started
         true_depth = views.depth[index] if views.depth is not None else None
-        target = as_float_rgb(views.images[index])
-        mask = views.masks[index] if masks is not None and views.masks is not None else None
-        if masks == "background":
-            target = composite_background(target, mask, background)
+        batch = view_batch(views, index, masks, background)  # the target as validation sees it
+        target = batch["rgb"].reshape(views.height, views.width, 3)
+        mask = batch["mask"].reshape(views.height, views.width) if "mask" in batch else None
         metrics = image_metrics(frame["rgb"], target, frame["depth"] if true_depth is not None else None, true_depth, mask)
         rows.append({"view": views.names[index], **{key: float(value) for key, value in metrics.items()}, "seconds": round(seconds, 4)})
         if output_dir is not None:

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from nerf_lightning.rendering.compositing import weights_from_optical_depth, weights_from_optical_depth_packed
-from nerf_lightning.rendering.packed import RaySamples
+from nerf_lightning.rendering.packed import RaySamples, on_table
 
 # points (M, 3) -> densities (M,)
 DensityFn = Callable[[torch.Tensor], torch.Tensor]
@@ -264,9 +264,7 @@ def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_
         ray_of = samples.ray_indices.clamp(max=n_rays - 1)
         mids = 0.5 * (samples.t_starts + samples.t_ends)
         density = density_fn(to_field(rays_o[ray_of] + rays_d[ray_of] * mids[:, None])).float()
-        tau = (density * (samples.t_ends - samples.t_starts).float())
-        table = tau.new_zeros((n_rays + 1) * width).index_put((cells,), tau).view(n_rays + 1, width)
-        composited = weights_from_optical_depth(table)
+        composited = weights_from_optical_depth(on_table(density * (samples.t_ends - samples.t_starts).float(), cells, n_rays, width))
         alpha = composited.alpha.reshape(-1).index_select(0, cells)
         transmittance = composited.transmittance.reshape(-1).index_select(0, cells)
         keep = (samples.t_ends > samples.t_starts) & (alpha >= alpha_threshold) & (transmittance >= early_stop_eps)

@@ -15,7 +15,7 @@ import torch
 
 from nerf_lightning.rendering.compositing import exclusive_sum_packed, weights_from_optical_depth_packed
 
-__all__ = ["RaySamples", "composite_packed", "exclusive_sum_packed"]
+__all__ = ["RaySamples", "composite_packed", "exclusive_sum_packed", "on_table"]
 
 
 @dataclass
@@ -51,6 +51,13 @@ class RaySamples:
         ray_indices = torch.arange(n_rays, device=edges.device).repeat_interleave(n_samples, output_size=n_rays * n_samples)
         slots = torch.arange(n_samples, device=edges.device).repeat(n_rays)
         return cls(ray_indices, edges[:, :-1].reshape(-1), edges[:, 1:].reshape(-1), n_rays, dict(extras), slots, n_samples)
+
+
+def on_table(values: torch.Tensor, cells: torch.Tensor, n_rays: int, width: int) -> torch.Tensor:
+    """(M, ...) values of samples on a table (:attr:`RaySamples.slots`; ``cells`` (M,) their places, ray * width + slot)
+    -> the (N + 1, width, ...) table, zeros where no sample is, the padding's in row N."""
+    table = values.new_zeros((n_rays + 1) * width, *values.shape[1:]).index_put((cells,), values)
+    return table.view(n_rays + 1, width, *values.shape[1:])
 
 
 def composite_packed(

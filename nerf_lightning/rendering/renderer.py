@@ -9,7 +9,7 @@ import torch
 from nerf_lightning.fields.base import Field
 from nerf_lightning.geometry.space import Rays, SceneSpace
 from nerf_lightning.rendering.compositing import weights_from_optical_depth
-from nerf_lightning.rendering.packed import RaySamples
+from nerf_lightning.rendering.packed import RaySamples, on_table
 
 
 class VolumeRenderer:
@@ -127,18 +127,14 @@ class VolumeRenderer:
             scale = (mids / self.gradient_scaling_distance).square().clamp(max=1.0)
             out = {"density": scale_gradient(out["density"], scale), "rgb": scale_gradient(out["rgb"], scale[:, None])}
         dtype = torch.promote_types(out["rgb"].dtype, torch.float32)
-
-        def table(values: torch.Tensor) -> torch.Tensor:  # (M, ...) -> (N, width, ...), the padding row dropped
-            full = values.new_zeros((n_rays + 1) * width, *values.shape[1:]).index_put((cells,), values)
-            return full.view(n_rays + 1, width, *values.shape[1:])[:n_rays]
-
-        composited = weights_from_optical_depth(table((out["density"].to(dtype) * (ends - starts).to(dtype))))
-        weights = composited.weights  # (N, width)
-        accumulation = weights.sum(dim=1)
-        colour = (weights[..., None] * table(out["rgb"].to(dtype))).sum(dim=1) + (1.0 - accumulation)[:, None] * space.background.to(dtype)
-        depth = (weights * table(mids.to(dtype))).sum(dim=1) / accumulation.clamp(min=1e-10)
-        sample_weights = torch.cat([weights.reshape(-1), weights.new_zeros(width)]).index_select(0, cells)
-        return {"rgb": colour, "depth": depth, "accumulation": accumulation, "weights": sample_weights,
+        # the padding's row N has zero optical depth, so zero weights: composited with the rest, dropped from the sums
+        weights = weights_from_optical_depth(on_table(out["density"].to(dtype) * (ends - starts).to(dtype), cells, n_rays, width)).weights
+        rays_weights = weights[:n_rays]  # (N, width)
+        accumulation = rays_weights.sum(dim=1)
+        colour = (rays_weights[..., None] * on_table(out["rgb"].to(dtype), cells, n_rays, width)[:n_rays]).sum(dim=1)
+        colour = colour + (1.0 - accumulation)[:, None] * space.background.to(dtype)
+        depth = (rays_weights * on_table(mids.to(dtype), cells, n_rays, width)[:n_rays]).sum(dim=1) / accumulation.clamp(min=1e-10)
+        return {"rgb": colour, "depth": depth, "accumulation": accumulation, "weights": weights.reshape(-1).index_select(0, cells),
                 "n_evaluated": (ends > starts).sum()}
 
     def __repr__(self) -> str:

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageOps
 
-from nerf_lightning.data.images import downscale_mask, white_pixels
+from nerf_lightning.data.images import downscale_mask, mask_channel, white_pixels
 from nerf_lightning.io import write_atomic
 
 # read by Pillow; HEIC/HEIF (iPhones) is listed so that such files are named as unreadable rather than silently left out
@@ -161,11 +161,7 @@ def mask_values(image: Image.Image) -> np.ndarray:
         image = image.convert("RGBA" if "transparency" in image.info else "RGB")
     elif image.mode not in ("1", "L", "LA", "RGB", "RGBA", "I;16", "I", "F"):
         image = image.convert("RGB")
-    values = np.asarray(image)
-    if values.ndim == 3:
-        alpha = values[..., -1] if values.shape[-1] in (2, 4) else None
-        values = alpha if alpha is not None and alpha.min() < alpha.max() else values[..., 0]
-    return values
+    return mask_channel(np.asarray(image))
 
 
 def read_mask(path: Path, mask_object: str = "white") -> np.ndarray:

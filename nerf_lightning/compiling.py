@@ -19,15 +19,17 @@ log = logging.getLogger(__name__)
 
 
 class CompiledOrEager:
-    """``function`` through ``torch.compile(dynamic=True)`` (its shapes change from call to call: packed samples),
-    compiled at its first call; ``function`` itself for the rest of the process once compiling or running the
-    compiled code has failed where ``function`` itself runs (one warning naming ``what`` and the error). Where
-    ``function`` fails too, its own error is raised and compiling stays on.
+    """``function`` through ``torch.compile`` with ``options`` (by default ``dynamic=True``: shapes that change
+    from call to call, packed samples), compiled at its first call; ``function`` itself for the rest of the process
+    once compiling or running the compiled code has failed where ``function`` itself runs (one warning naming
+    ``what`` and the error). Where ``function`` fails too, its own error is raised and compiling stays on. With
+    ``fullgraph=True`` a graph break is such a failure.
 
     ``failure`` is None, or the error that turned compilation off."""
 
-    def __init__(self, function: Callable[..., Any], what: str) -> None:
+    def __init__(self, function: Callable[..., Any], what: str, **options: Any) -> None:
         self.function, self.what = function, what
+        self.options = {"dynamic": True, **options}
         self.compiled: Callable[..., Any] | None = None
         self.failure: str | None = None
 
@@ -36,7 +38,7 @@ class CompiledOrEager:
             try:
                 if self.compiled is None:
                     log.info("compiling %s with torch.compile: the first call takes a while (seconds once cached on disk)", self.what)
-                    self.compiled = torch.compile(self.function, dynamic=True)
+                    self.compiled = torch.compile(self.function, **self.options)
                 return self.compiled(*args)
             except Exception as error:  # noqa: BLE001 - the plain function decides whether it was the compiler's fault
                 # an error of the input itself (a bad shape, out of memory) raises again here, as the function's own,
@@ -45,6 +47,6 @@ class CompiledOrEager:
                 lines = str(error).strip().splitlines()
                 self.failure = f"{type(error).__name__}: {lines[0] if lines else ''}"
                 warnings.warn(f"torch.compile failed for {self.what} ({self.failure}); running it in plain PyTorch from now "
-                              f"on, slower (inductor needs a working C++ compiler, g++ or clang, on the PATH)", stacklevel=2)
+                              f"on, slower (on a CPU inductor needs a working C++ compiler, g++ or clang, on the PATH)", stacklevel=2)
                 return result
         return self.function(*args)

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from hydra.errors import InstantiationException
+from omegaconf.errors import MissingMandatoryValue
 
 INPUT_ERRORS = (FileNotFoundError, NotADirectoryError, PermissionError, ValueError)
 
@@ -35,6 +36,9 @@ def input_error(error: BaseException) -> BaseException | None:
     """The user-input error behind ``error`` (unwrapping Hydra's InstantiationException), or None for a bug."""
     while isinstance(error, InstantiationException) and error.__cause__ is not None:
         error = error.__cause__
+    if isinstance(error, MissingMandatoryValue):  # a ??? key left unset (data.root of a format without a default)
+        key = getattr(error, "full_key", None) or "a required key"
+        return ValueError(f"{key} has no value and needs one: give it on the command line, {key}=...")
     return error if isinstance(error, (*INPUT_ERRORS, NonFiniteLossError, MissingExtraError)) else None
 
 

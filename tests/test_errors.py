@@ -56,6 +56,10 @@ def test_a_missing_data_path_is_named(tmp_path, capsys):
     assert not (tmp_path / "run" / "checkpoints").exists() and not (tmp_path / "run" / "metrics.json").exists()
 
 
+def test_a_required_key_left_unset_is_named(tmp_path, capsys):
+    fails_with(capsys, "nerf-train", train, train_config(tmp_path, "experiment=fast_blender"), "data.root has no value", "data.root=...")
+
+
 def test_an_empty_folder_says_what_it_should_hold(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     fails_with(capsys, "nerf-train", train, train_config(tmp_path, "experiment=fast_blender", f"data.root={tmp_path / 'empty'}"),

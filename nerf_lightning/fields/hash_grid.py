@@ -142,6 +142,8 @@ class HashGridEncoding(nn.Module):
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) points in [0, 1] -> (..., L * F)"""
         flat = self._flat_points(points)
+        if torch.compiler.is_compiling():  # inside a compiled training step: inductor fuses the reference, forward and backward
+            return encode_reference(flat, *self.reference_inputs()).reshape(*points.shape[:-1], self.out_dim)
         path = hash_grid_fast.choose_path(flat.device.type, torch.is_grad_enabled(), self.features_per_level,
                                           self.table.dtype, self.compile_evaluation, flat.shape[0])
         return hash_grid_fast.encode(path, self, flat).reshape(*points.shape[:-1], self.out_dim)

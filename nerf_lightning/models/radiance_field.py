@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nerf_lightning.compiling import CompiledOrEager
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
@@ -49,6 +50,12 @@ class RadianceFieldModule(SceneModule):
             photos that are opaque everywhere (a real capture) a transparent ray then cannot match its pixel, so the
             field learns surfaces instead of a fog. Not for photos that had alpha: their targets show the background
             (but with ``data.masks=background`` the target outside the mask shows the same random colour).
+        compile: run the training step's forward and loss (sampling, field, compositing, loss) as one graph through
+            ``torch.compile(fullgraph=True)``, its backward compiled with it (inductor: C++ on a CPU, Triton kernels on
+            a GPU); the sampler's grid refreshes stay outside. Worth it where the step has fixed shapes (the GPU
+            presets); without a working compiler it runs plainly after one warning (:class:`~nerf_lightning.compiling.CompiledOrEager`).
+        compile_mode: ``torch.compile``'s mode (None: its default; ``reduce-overhead``: CUDA graphs on a GPU,
+            ``max-autotune-no-cudagraphs``).
     """
 
     kind = "radiance_field"
@@ -63,6 +70,8 @@ class RadianceFieldModule(SceneModule):
         chunk_size: int = 4096,
         camera_refinement: CameraRefinement | None = None,
         train_background: str = "scene",
+        compile: bool = False,
+        compile_mode: str | None = None,
     ) -> None:
         super().__init__(optimizer, scheduler)
         self.field, self.sampler = field, sampler
@@ -72,6 +81,12 @@ class RadianceFieldModule(SceneModule):
         if train_background not in ("scene", "random"):
             raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
         self.train_background = train_background
+        if compile and (not self.renderer.fixed_shapes or getattr(sampler, "capacity", 0) is None):
+            raise ValueError("model.compile=true needs a training step of fixed shapes: model.renderer.fixed_shapes=true and, with "
+                             "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
+                             "depend on the data, so each would compile anew")
+        self.compiled_step = CompiledOrEager(self.step_losses, "the training step", fullgraph=True, dynamic=False,
+                                             mode=compile_mode) if compile else None
 
     def use_space(self, space: SceneSpace) -> None:
         """Render in ``space`` from now on; a box of a field or grid that cannot hold it is refused by name."""
@@ -199,7 +214,20 @@ class RadianceFieldModule(SceneModule):
         raise ValueError(f"{type(self).__name__} has no overlay '{name}': it has {', '.join(self.overlay_names()) or 'none'}")
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
-        self.sampler.update(self.global_step, self.field)
+        self.sampler.update(self.global_step, self.field)  # a grid refresh: outside the compiled graph, on its own steps
+        terms = self.step_losses(batch) if self.compiled_step is None else self.compiled_step(batch)
+        loss = terms.pop("loss")
+        self.log("train/samples_per_ray", terms.pop("samples_per_ray"), on_step=True)  # tensors: not read back here
+        self.log("train/psnr", mse_to_psnr(terms.pop("mse")), on_step=True, prog_bar=True)
+        for name, value in terms.items():
+            self.log(f"train/{name}", value, on_step=True)
+        self.log("train/loss", loss.detach(), on_step=True, on_epoch=False)
+        return loss
+
+    def step_losses(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The training step's tensors, from a batch of N rays to the loss (what ``compile`` compiles): ``loss``
+        (the one to minimise), ``mse`` and ``samples_per_ray`` (detached) and each extra loss as ``loss_<name>``
+        (the sampler's, the camera corrections' and the appearance embedding's penalties, detached)."""
         rays_o, rays_d, camera_index = batch["rays_o"], batch["rays_d"], batch.get("camera_index")
         if self.camera_refinement is not None and camera_index is not None:
             rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
@@ -225,13 +253,9 @@ class RadianceFieldModule(SceneModule):
         loss = mse + sum(extra_losses.values())
         if not loss.requires_grad:  # no ray of the batch met an occupied cell: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
-        self.log("train/samples_per_ray", out["n_evaluated"] / batch["rays_o"].shape[0], on_step=True)  # a tensor: not read back here
-        for name, value in extra_losses.items():
-            self.log(f"train/loss_{name}", value.detach(), on_step=True)
-        self.log("train/loss", loss, on_step=True, on_epoch=False)
-        self.log("train/psnr", mse_to_psnr(mse.detach()), on_step=True, prog_bar=True)
-        return loss
-
+        terms = {"loss": loss, "mse": mse.detach(), "samples_per_ray": out["n_evaluated"] / rays_o.shape[0]}
+        terms.update({f"loss_{name}": value.detach() for name, value in extra_losses.items()})
+        return terms
 
 def box_edges(low: torch.Tensor, high: torch.Tensor, to_world: Callable[[torch.Tensor], torch.Tensor]) -> np.ndarray:
     """(12, 2, 3) float32 the edges of the box low..high (3,) mapped by ``to_world`` (lines stay lines: identity or NDC)."""

@@ -81,6 +81,9 @@ class HashGridEncoding(nn.Module):
         compile_evaluation: on a CPU, without gradients (renders, evaluation, the viewer, and training's passes that
             need none), run the encoding through ``torch.compile`` (faster: one fused loop over the points), falling
             back to plain PyTorch with a warning where this machine cannot compile.
+        table_precision: None (float32), ``float16`` or ``bfloat16``: the table read in that precision, half the
+            bytes through the gather and the gradient's scatter (Instant-NGP keeps its table in float16), its
+            float32 values kept for the optimiser. For GPUs: a CPU's float16 gathers and scatters are slower.
 
     ``forward``: (..., 3) points in [0, 1] (clamped) -> (..., L * F), level by level, through the path that
     :func:`~nerf_lightning.fields.hash_grid_fast.choose_path` picks; ``forward_reference``: the same through
@@ -96,8 +99,12 @@ class HashGridEncoding(nn.Module):
         max_resolution: int = 2048,
         init_scale: float = 1e-4,
         compile_evaluation: bool = True,
+        table_precision: str | None = None,
     ) -> None:
         super().__init__()
+        if table_precision not in (None, "float16", "bfloat16"):
+            raise ValueError(f"model.field.encoding.table_precision must be null, float16 or bfloat16, got {table_precision!r}")
+        self.table_precision = None if table_precision is None else getattr(torch, table_precision)
         if n_levels < 1 or features_per_level < 1 or not 1 <= base_resolution <= max_resolution:
             raise ValueError(
                 f"HashGridEncoding needs n_levels >= 1, features_per_level >= 1 and 1 <= base_resolution <= max_resolution, "
@@ -131,8 +138,13 @@ class HashGridEncoding(nn.Module):
         return self.n_levels * self.features_per_level
 
     def reference_inputs(self) -> tuple[torch.Tensor, ...]:
-        """:func:`encode_reference`'s arguments after the points: the table and the levels."""
-        return self.table, self.resolutions, self.hashed, self.offsets, self.hash_primes, self.hash_mask
+        """:func:`encode_reference`'s arguments after the points: the table (:meth:`read_table`) and the levels."""
+        return self.read_table(), self.resolutions, self.hashed, self.offsets, self.hash_primes, self.hash_mask
+
+    def read_table(self) -> torch.Tensor:
+        """The (rows, F) table as the encoding reads it: the parameter, or a copy in ``table_precision`` (the
+        parameter stays float32 for the optimiser; the gradient is added up in that precision, then cast back)."""
+        return self.table if self.table_precision is None else self.table.to(self.table_precision)
 
     def _flat_points(self, points: torch.Tensor) -> torch.Tensor:
         if points.shape[-1] != 3:
@@ -145,7 +157,7 @@ class HashGridEncoding(nn.Module):
         if torch.compiler.is_compiling():  # inside a compiled training step: inductor fuses the reference, forward and backward
             return encode_reference(flat, *self.reference_inputs()).reshape(*points.shape[:-1], self.out_dim)
         path = hash_grid_fast.choose_path(flat.device.type, torch.is_grad_enabled(), self.features_per_level,
-                                          self.table.dtype, self.compile_evaluation, flat.shape[0])
+                                          self.table_precision or self.table.dtype, self.compile_evaluation, flat.shape[0])
         return hash_grid_fast.encode(path, self, flat).reshape(*points.shape[:-1], self.out_dim)
 
     def forward_reference(self, points: torch.Tensor) -> torch.Tensor:

@@ -81,7 +81,7 @@ def encode_gathered(encoding: HashGridEncoding, points: torch.Tensor, complex_ro
     rows = [corner_rows(encoding, lower[:, levels], hashed) for levels, hashed in parts]  # (2, 2, 2, n, M) each
     # each part's rows count from its own start in the table (the hashed levels' from dense_rows)
     starts = [encoding.dense_rows if hashed else 0 for _, hashed in parts]
-    corner_features = gather_rows(encoding.table, [part.reshape(-1) for part in rows], starts, complex_rows)
+    corner_features = gather_rows(encoding.read_table(), [part.reshape(-1) for part in rows], starts, complex_rows)
     features = []
     for (levels, _), part, found in zip(parts, rows, corner_features):
         corner_weights = weights[..., levels, :]  # (2, 2, 2, n, M)

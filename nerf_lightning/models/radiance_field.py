@@ -85,7 +85,9 @@ class RadianceFieldModule(SceneModule):
             raise ValueError("model.compile=true needs a training step of fixed shapes: model.renderer.fixed_shapes=true and, with "
                              "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
                              "depend on the data, so each would compile anew")
-        self.compiled_step = CompiledOrEager(self.step_losses, "the training step", fullgraph=True, dynamic=False,
+        self.rays_that_fit: torch.Tensor | None = None
+        self.ray_count_varies = False  # set by callbacks.RayBudget
+        self.compiled_step = CompiledOrEager(self.step_losses, "the training step", fullgraph=True, dynamic=None,
                                              mode=compile_mode) if compile else None
 
     def use_space(self, space: SceneSpace) -> None:
@@ -215,19 +217,31 @@ class RadianceFieldModule(SceneModule):
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)  # a grid refresh: outside the compiled graph, on its own steps
-        terms = self.step_losses(batch) if self.compiled_step is None else self.compiled_step(batch)
+        if self.compiled_step is None:
+            terms = self.step_losses(batch)
+        else:
+            if self.ray_count_varies:  # one graph for every ray count (callbacks.RayBudget), not one compiled per count
+                for value in batch.values():
+                    if isinstance(value, torch.Tensor):
+                        torch._dynamo.maybe_mark_dynamic(value, 0)
+            terms = self.compiled_step(batch)
         loss = terms.pop("loss")
+        # the rays a fixed-capacity sampler would have held whole (callbacks.RayBudget sizes later steps by it), or None
+        self.rays_that_fit = terms.get("rays_that_fit")
         self.log("train/samples_per_ray", terms.pop("samples_per_ray"), on_step=True)  # tensors: not read back here
         self.log("train/psnr", mse_to_psnr(terms.pop("mse")), on_step=True, prog_bar=True)
         for name, value in terms.items():
             self.log(f"train/{name}", value, on_step=True)
         self.log("train/loss", loss.detach(), on_step=True, on_epoch=False)
+        self.log("train/rays", float(batch["rays_o"].shape[0]), on_step=True)  # a size, known on the host
         return loss
 
     def step_losses(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The training step's tensors, from a batch of N rays to the loss (what ``compile`` compiles): ``loss``
-        (the one to minimise), ``mse`` and ``samples_per_ray`` (detached) and each extra loss as ``loss_<name>``
-        (the sampler's, the camera corrections' and the appearance embedding's penalties, detached)."""
+        (the one to minimise), ``mse`` and ``samples_per_ray`` (detached), each extra loss as ``loss_<name>``
+        (the sampler's, the camera corrections' and the appearance embedding's penalties, detached) and, from a
+        sampler of fixed capacity, ``rays_that_fit`` (0-d: how many rays of what this step's rays wanted its
+        buffers would hold)."""
         rays_o, rays_d, camera_index = batch["rays_o"], batch["rays_d"], batch.get("camera_index")
         if self.camera_refinement is not None and camera_index is not None:
             rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
@@ -255,6 +269,8 @@ class RadianceFieldModule(SceneModule):
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
         terms = {"loss": loss, "mse": mse.detach(), "samples_per_ray": out["n_evaluated"] / rays_o.shape[0]}
         terms.update({f"loss_{name}": value.detach() for name, value in extra_losses.items()})
+        if samples is not None and "rays_that_fit" in samples.extras:
+            terms["rays_that_fit"] = samples.extras["rays_that_fit"].detach()
         return terms
 
 def box_edges(low: torch.Tensor, high: torch.Tensor, to_world: Callable[[torch.Tensor], torch.Tensor]) -> np.ndarray:

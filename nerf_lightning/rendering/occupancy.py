@@ -235,7 +235,9 @@ def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor
         raise ValueError("march_rays: a fixed capacity needs reach, the longest a ray can be in the sampled range")
     n_rays, width = rays_o.shape[0], math.ceil(reach / step_size)
     to_field = to_field or (lambda points: points)
-    shift = (torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype, device=rays_o.device) if perturb
+    # no generator keyword without a generator: a compiled step with a symbolic ray count cannot trace one
+    draw = {} if generator is None else {"generator": generator}
+    shift = (torch.rand(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device, **draw) if perturb
              else torch.zeros(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device))
     steps = torch.arange(width, dtype=rays_o.dtype, device=rays_o.device)
     t_starts = t_enter[:, None] + (steps + shift) * step_size  # (N, S)
@@ -243,14 +245,21 @@ def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor
     midpoints = rays_o[:, None, :] + rays_d[:, None, :] * (0.5 * (t_starts + t_ends))[..., None]
     keep = (t_starts < t_exit[:, None]) & grid.occupied(to_field(midpoints))  # (N, S)
     # the kept steps' places in the table, in order, then the padding's: the first cell of the padding row N
-    cells = torch.nonzero_static(keep.reshape(-1), size=capacity, fill_value=n_rays * width)[:, 0]
+    # (filled with -1, then N * width: a fill value is a plain int to torch.compile, which would fix the ray count)
+    cells = torch.nonzero_static(keep.reshape(-1), size=capacity, fill_value=-1)[:, 0]
+    cells = torch.where(cells < 0, n_rays * width, cells)
     padded = torch.zeros(1, dtype=t_starts.dtype, device=t_starts.device)
     starts, ends = torch.cat([t_starts.reshape(-1), padded]), torch.cat([t_ends.reshape(-1), padded])
     ray_indices = torch.div(cells, width, rounding_mode="floor")
-    # the ray of the last sample kept lost its later steps where the buffer is full: it and the rays after are incomplete
-    cut = torch.where(cells[-1] < n_rays * width, ray_indices[-1], n_rays)
+    # the ray of the last sample kept lost its later steps where the buffer is full: it and the rays after are
+    # incomplete; where it is not full, the last sample is padding, of ray N: every ray is whole
+    cut = ray_indices[-1]
     complete = torch.arange(n_rays, device=rays_o.device) < cut
-    return RaySamples(ray_indices, starts[cells], ends[cells], n_rays, {"complete": complete}, cells - ray_indices * width, width)
+    # how many rays of the samples a ray wants (over the rays held whole: the first, a random draw of the batch) the
+    # capacity holds, for the rays of later steps (callbacks.RayBudget); a device tensor, read back a step late
+    fit = capacity * cut.clamp(min=1) / (ray_indices < cut).sum().clamp(min=1)
+    return RaySamples(ray_indices, starts[cells], ends[cells], n_rays, {"complete": complete, "rays_that_fit": fit},
+                      cells - ray_indices * width, width)
 
 
 def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_field: Callable[[torch.Tensor], torch.Tensor] | None,
@@ -269,12 +278,16 @@ def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_
         transmittance = composited.transmittance.reshape(-1).index_select(0, cells)
         keep = (samples.t_ends > samples.t_starts) & (alpha >= alpha_threshold) & (transmittance >= early_stop_eps)
     index = torch.nonzero_static(keep, size=capacity, fill_value=len(samples))[:, 0]  # the padding: one more, zero-width
-    padded = torch.cat([cells, cells.new_full((1,), n_rays * width)])
+    padded = torch.cat([cells, cells.new_zeros(1) + n_rays * width])  # (not new_full: it would fix the ray count when compiled)
     starts = torch.cat([samples.t_starts, samples.t_starts.new_zeros(1)])[index]
     ends = torch.cat([samples.t_ends, samples.t_ends.new_zeros(1)])[index]
     kept_cells = padded[index]
     ray_indices = torch.div(kept_cells, width, rounding_mode="floor")
     # rays cut short: those the first buffer cut, and those whose kept samples this buffer cannot all hold
-    cut = torch.where(index[-1] < len(samples), ray_indices[-1], n_rays)
+    cut = ray_indices[-1]  # as in _march_fixed: the padding's ray is N
     complete = samples.extras["complete"] & (torch.arange(n_rays, device=cut.device) < cut)
-    return RaySamples(ray_indices, starts, ends, n_rays, {"complete": complete}, kept_cells - ray_indices * width, width)
+    # the rays both buffers hold, of what a ray the march held whole wants of each (see _march_fixed)
+    whole = samples.extras["complete"]
+    fit = torch.minimum(samples.extras["rays_that_fit"], capacity * whole.sum().clamp(min=1) / (keep & whole[ray_of]).sum().clamp(min=1))
+    return RaySamples(ray_indices, starts, ends, n_rays, {"complete": complete, "rays_that_fit": fit},
+                      kept_cells - ray_indices * width, width)

@@ -207,3 +207,30 @@ def test_the_encoding_is_the_reference_on_a_gpu_too():
     with torch.no_grad():
         torch.testing.assert_close(cuda(points.cuda()).cpu(), expected)
     assert isinstance(cuda, HashGridEncoding)
+
+
+@pytest.mark.parametrize("precision", ["float16", "bfloat16"])
+def test_a_table_read_in_half_precision_gives_the_float32_features_to_its_rounding(precision):
+    """table_precision: every path (and the reference a compiled step runs) reads the table rounded to half
+    precision; the features are those of the rounded table, and the gradient reaches the float32 parameter."""
+    exact = small_encoding(features_per_level=2)
+    exact.table.data.uniform_(-1.0, 1.0)  # values of order 1: the rounding is float16's or bfloat16's relative step
+    half = small_encoding(features_per_level=2, table_precision=precision)
+    half.load_state_dict(exact.state_dict())
+    rounded = small_encoding(features_per_level=2)
+    rounded.table.data.copy_(exact.table.data.to(getattr(torch, precision)).float())
+    points = random_points(500, seed=3)
+    with torch.no_grad():
+        wanted = encode_reference(points, *rounded.reference_inputs())
+    for path in (GATHER, COMPILED) if has_cxx_compiler() else (GATHER,):
+        with torch.no_grad():
+            got = encode(path, half, points)
+        assert got.dtype == torch.float32
+        torch.testing.assert_close(got, wanted, atol=1e-5, rtol=1e-5)
+    features = half(points)  # with gradients: the gather path
+    torch.testing.assert_close(features, wanted, atol=1e-5, rtol=1e-5)
+    features.square().sum().backward()
+    assert half.table.grad is not None and half.table.grad.dtype == torch.float32 and bool(half.table.grad.abs().sum() > 0)
+    assert half.table.dtype == torch.float32  # what the optimiser steps
+    with pytest.raises(ValueError, match="table_precision must be null, float16 or bfloat16"):
+        small_encoding(table_precision="float8")

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import functools
+import warnings
+from types import SimpleNamespace
 
 import lightning as L
 import pytest
+import torch
 import torch._inductor.config as inductor_config
 from hydra.utils import instantiate
 
+from nerf_lightning import compiling
+from nerf_lightning.callbacks import RayBudget
 from nerf_lightning.config import compose_config
 from nerf_lightning.models import radiance_field
 
@@ -27,13 +32,24 @@ class StepLosses(L.Callback):
         self.losses.append(float(outputs["loss"]))
 
 
-def fit(preset: str, compile: bool, steps: int = 4) -> tuple[L.LightningModule, list[float]]:
-    cfg = compose_config([*PRESETS[preset], "data.batch_size=256", "data.val_every=null", f"model.compile={compile}"])
+class StepRays(L.Callback):
+    def __init__(self) -> None:
+        self.rays: list[int] = []
+        self.fit: list[float] = []
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        self.rays.append(batch["rays_o"].shape[0])
+        self.fit.append(float(module.rays_that_fit))
+
+
+def fit(preset: str, compile: bool, steps: int = 4, callbacks=(), overrides=()) -> tuple[L.LightningModule, list[float]]:
+    """``steps`` steps of ``preset`` from the same seed, with ``callbacks`` (the preset's own are left out)."""
+    cfg = compose_config([*PRESETS[preset], "data.batch_size=256", "data.val_every=null", f"model.compile={compile}", *overrides])
     L.seed_everything(0, verbose=False)
     datamodule, model = instantiate(cfg.data), instantiate(cfg.model)
     losses = StepLosses()
     trainer = L.Trainer(max_steps=steps, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, limit_val_batches=0, callbacks=[losses])
+                        enable_model_summary=False, limit_val_batches=0, callbacks=[losses, *callbacks])
     trainer.fit(model, datamodule=datamodule)
     return model, losses.losses
 
@@ -65,3 +81,60 @@ def test_compiling_a_step_whose_sizes_depend_on_the_data_is_refused_in_one_line(
     cfg = compose_config(["experiment=fast_blender", "model.compile=true"])
     with pytest.raises(Exception, match="model.compile=true needs a training step of fixed shapes"):
         instantiate(cfg.model)
+
+
+def test_the_rays_a_step_follow_the_sample_budget_read_a_step_late_and_compile_once(scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    budget, rays = RayBudget(fill=0.9, min_rays=64, max_rays=4096, multiple=64), StepRays()
+    plain, plain_losses = fit("fast_blender_gpu", compile=False, steps=12, callbacks=[budget, rays])
+    # 256 rays want far more than the capacity of 16384 samples (the grid starts full): fewer rays, once the count is back
+    assert rays.rays[0] == 256 and rays.rays[-1] < 256
+    for step in range(1, 12):  # each step's rays sized from what an earlier step's wanted, never its own
+        if rays.rays[step] != rays.rays[step - 1]:
+            assert any(rays.rays[step] == min(max(int(0.9 * fit) // 64 * 64, 64), 4096) for fit in rays.fit[:step - 1]), step
+    # compiled: the same losses, and one graph for every ray count (the ray count a symbol, not a constant)
+    budget, rays_compiled = RayBudget(fill=0.9, min_rays=64, max_rays=4096, multiple=64), StepRays()
+    torch._dynamo.reset()
+    with inductor_config.patch(fallback_random=True):
+        compiled, compiled_losses = fit("fast_blender_gpu", compile=True, steps=12, callbacks=[budget, rays_compiled])
+    assert compiled.compiled_step.failure is None
+    assert rays_compiled.rays == rays.rays and len(set(rays.rays)) >= 2
+    assert compiled_losses == pytest.approx(plain_losses, rel=1e-4)
+    from torch._dynamo.eval_frame import _debug_get_cache_entry_list
+    assert len(_debug_get_cache_entry_list(radiance_field.RadianceFieldModule.step_losses.__code__)) == 1
+
+
+def test_a_ray_budget_needs_a_sampler_of_fixed_capacity(scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    with pytest.raises(ValueError, match="callbacks.ray_budget sizes the rays a step to an occupancy grid's model.sampler.capacity"):
+        cfg = compose_config(["experiment=fast", "data=procedural", "data.scene.size=32", "data.val_every=null"])
+        trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False, callbacks=[RayBudget()])
+        trainer.fit(instantiate(cfg.model), datamodule=instantiate(cfg.data))
+
+
+def test_a_resumed_run_goes_on_with_the_ray_count_it_had():
+    budget = RayBudget()
+    budget.load_state_dict({"rays": 3072})
+    trainer = SimpleNamespace(datamodule=SimpleNamespace(batch_size=16384))
+    budget.on_train_start(trainer, None)
+    assert trainer.datamodule.batch_size == 3072 and budget.state_dict() == {"rays": 3072}
+
+
+def test_where_compiling_fails_the_step_runs_plainly_after_one_warning(scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+
+    def no_compiler(function, **options):
+        def compiled(*args):
+            raise RuntimeError("InvalidCxxCompiler: No working C++ compiler found")
+        return compiled
+
+    monkeypatch.setattr(compiling.torch, "compile", no_compiler)
+    plain_only = ["model.field.encoding.compile_evaluation=false"]  # the grid refreshes' encoding: not this process's compiled one
+    plain, plain_losses = fit("fast_blender_gpu", compile=False, steps=3, overrides=plain_only)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        compiled, compiled_losses = fit("fast_blender_gpu", compile=True, steps=3, overrides=plain_only)
+    failed = [w for w in caught if "torch.compile failed for the training step" in str(w.message)]
+    assert len(failed) == 1 and "No working C++ compiler" in str(failed[0].message)
+    assert compiled.compiled_step.failure is not None
+    assert compiled_losses == pytest.approx(plain_losses, rel=1e-6)

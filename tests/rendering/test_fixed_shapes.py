@@ -52,6 +52,27 @@ def test_the_density_pass_keeps_what_the_variable_march_keeps_in_a_fixed_capacit
     assert not (fixed.t_ends > fixed.t_starts)[len(variable):].any() and bool(fixed.extras["complete"].all())
 
 
+def test_rays_that_fit_counts_what_the_rays_held_whole_want():
+    grid = random_grid(seed=0, fraction=0.3)
+    rays_o, rays_d = rays_towards_origin(400, seed=2)
+    space = SceneSpace(2.0, 6.0)
+    t_enter, t_exit = space.ray_range(space.rays(rays_o, rays_d), grid.aabb)
+    reach = 2.0 * 3.0**0.5
+    wanted = len(march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False))  # every occupied step of the 400 rays
+    whole = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted + 10, reach=reach)
+    assert float(whole.extras["rays_that_fit"]) == pytest.approx((wanted + 10) * 400 / wanted)
+    # a quarter of what they want: the estimate from the rays held whole (the first ones), near the whole batch's
+    short = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 4, reach=reach)
+    assert float(short.extras["rays_that_fit"]) == pytest.approx((wanted // 4) * 400 / wanted, rel=0.3)
+    # with the density pass: the fewer of the two buffers' counts
+    field = BallField()
+    pruned = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 8, reach=reach,
+                        march_capacity=wanted + 10, density_fn=field.density, alpha_threshold=1e-3, early_stop_eps=1e-4)
+    kept = len(march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, density_fn=field.density, alpha_threshold=1e-3,
+                          early_stop_eps=1e-4))
+    assert float(pruned.extras["rays_that_fit"]) == pytest.approx(min((wanted // 8) * 400 / kept, (wanted + 10) * 400 / wanted))
+
+
 @pytest.mark.parametrize("sampler", ["occupancy", "dense"])
 def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampler):
     grid = OccupancyGrid(UNIT_BOX, resolution=8)

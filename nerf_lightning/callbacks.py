@@ -387,10 +387,14 @@ class RayBudget(L.Callback):
 
     Args:
         fill: the share of the capacity to aim at: below 1, a step whose rays want more than the last's still fits.
-        min_rays, max_rays, multiple: the bounds of the ray count, and its step.
+        min_rays, max_rays, multiple: the bounds of the ray count, and its step. The march's table of steps is
+            (rays, reach / step size): ``max_rays`` bounds its memory (65 536 rays of 1040 steps: a few GB).
+
+    On a GPU the step at which a count lands depends on timing, so two runs with a budget are not the same step for
+    step (their quality is).
     """
 
-    def __init__(self, fill: float = 0.9, min_rays: int = 1024, max_rays: int = 262_144, multiple: int = 1024) -> None:
+    def __init__(self, fill: float = 0.9, min_rays: int = 1024, max_rays: int = 65_536, multiple: int = 1024) -> None:
         if not 0 < fill <= 1 or multiple < 1 or not multiple <= min_rays <= max_rays:
             raise ValueError(f"callbacks.ray_budget: expected 0 < fill <= 1 and multiple <= min_rays <= max_rays, got fill={fill}, "
                              f"multiple={multiple}, min_rays={min_rays}, max_rays={max_rays}")
@@ -406,8 +410,10 @@ class RayBudget(L.Callback):
                              "model has none: set one (as experiment=fast_blender_gpu does), or remove the callback")
         pl_module.ray_count_varies = True  # a compiled step then traces one graph for any ray count
 
-    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self.rays is not None:  # resumed: the ray count it had
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # resumed: the ray count it had (the callback's state is restored before this hook, and the first batch is
+        # drawn after it)
+        if self.rays is not None:
             trainer.datamodule.batch_size = self.rays
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:

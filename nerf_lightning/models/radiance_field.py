@@ -87,7 +87,8 @@ class RadianceFieldModule(SceneModule):
                              "depend on the data, so each would compile anew")
         self.rays_that_fit: torch.Tensor | None = None
         self.ray_count_varies = False  # set by callbacks.RayBudget
-        self.compiled_step = CompiledOrEager(self.step_losses, "the training step", fullgraph=True, dynamic=None,
+        # the function, not the bound method: a copy of the module would otherwise run this one's step
+        self.compiled_step = CompiledOrEager(type(self).step_losses, "the training step", fullgraph=True, dynamic=None,
                                              mode=compile_mode) if compile else None
 
     def use_space(self, space: SceneSpace) -> None:
@@ -105,6 +106,12 @@ class RadianceFieldModule(SceneModule):
         if stage == "fit" and getattr(datamodule, "batches", "rays") != "rays":
             raise ValueError(f"a radiance field trains on random rays, and data={getattr(datamodule, 'batches', '?')} serves whole "
                              "training views: use data=<format> (blender, llff, transforms, ...), which serves rays")
+        precision = str(getattr(getattr(self, "trainer", None), "precision", "32-true"))
+        for name, module in self.named_modules():
+            if getattr(module, "table_precision", None) == torch.float16 and stage == "fit" and not precision.startswith("16"):
+                raise ValueError(f"model.{name}.table_precision=float16 needs trainer.precision=16-mixed, whose loss scaling keeps "
+                                 f"the table's small gradients from vanishing in float16 (got trainer.precision={precision}); "
+                                 "or use table_precision=bfloat16")
         scene = getattr(datamodule, "scene", None)
         for per_view in (getattr(self.field, "appearance", None), self.camera_refinement):
             if per_view is not None and scene is not None:
@@ -224,7 +231,7 @@ class RadianceFieldModule(SceneModule):
                 for value in batch.values():
                     if isinstance(value, torch.Tensor):
                         torch._dynamo.maybe_mark_dynamic(value, 0)
-            terms = self.compiled_step(batch)
+            terms = self.compiled_step(self, batch)
         loss = terms.pop("loss")
         # the rays a fixed-capacity sampler would have held whole (callbacks.RayBudget sizes later steps by it), or None
         self.rays_that_fit = terms.get("rays_that_fit")
@@ -233,7 +240,9 @@ class RadianceFieldModule(SceneModule):
         for name, value in terms.items():
             self.log(f"train/{name}", value, on_step=True)
         self.log("train/loss", loss.detach(), on_step=True, on_epoch=False)
-        self.log("train/rays", float(batch["rays_o"].shape[0]), on_step=True)  # a size, known on the host
+        # a size known on the host, logged as a device tensor made by a fill (a float would be copied to the device,
+        # a copy that waits for it)
+        self.log("train/rays", batch["rays_o"].new_full((), float(batch["rays_o"].shape[0])), on_step=True)
         return loss
 
     def step_losses(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -257,7 +257,7 @@ def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor
     complete = torch.arange(n_rays, device=rays_o.device) < cut
     # how many rays of the samples a ray wants (over the rays held whole: the first, a random draw of the batch) the
     # capacity holds, for the rays of later steps (callbacks.RayBudget); a device tensor, read back a step late
-    fit = capacity * cut.clamp(min=1) / (ray_indices < cut).sum().clamp(min=1)
+    fit = capacity * cut / (ray_indices < cut).sum().clamp(min=1)  # 0 where the first ray alone overflows: the fewest rays
     return RaySamples(ray_indices, starts[cells], ends[cells], n_rays, {"complete": complete, "rays_that_fit": fit},
                       cells - ray_indices * width, width)
 
@@ -288,6 +288,6 @@ def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_
     complete = samples.extras["complete"] & (torch.arange(n_rays, device=cut.device) < cut)
     # the rays both buffers hold, of what a ray the march held whole wants of each (see _march_fixed)
     whole = samples.extras["complete"]
-    fit = torch.minimum(samples.extras["rays_that_fit"], capacity * whole.sum().clamp(min=1) / (keep & whole[ray_of]).sum().clamp(min=1))
+    fit = torch.minimum(samples.extras["rays_that_fit"], capacity * whole.sum() / (keep & whole[ray_of]).sum().clamp(min=1))
     return RaySamples(ray_indices, starts, ends, n_rays, {"complete": complete, "rays_that_fit": fit},
                       kept_cells - ray_indices * width, width)

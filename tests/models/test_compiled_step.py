@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import functools
 import warnings
-from types import SimpleNamespace
 
 import lightning as L
 import pytest
 import torch
 import torch._inductor.config as inductor_config
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
+from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 
 from nerf_lightning import compiling
 from nerf_lightning.callbacks import RayBudget
@@ -65,16 +66,20 @@ def fit(preset: str, compile: bool, steps: int = 4, callbacks=(), overrides=()) 
 def test_the_compiled_step_is_one_graph_and_trains_as_the_plain_step(preset, backend, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     monkeypatch.setattr(radiance_field, "CompiledOrEager", functools.partial(radiance_field.CompiledOrEager, backend=backend))
-    plain, plain_losses = fit(preset, compile=False)
+    # ten steps: past dynamo's limit of 8 graphs a function, so that a graph a step (a step count read as a constant)
+    # would fail the compile
+    plain, plain_losses = fit(preset, compile=False, steps=10)
+    torch._dynamo.reset()
     with inductor_config.patch(fallback_random=True):  # random numbers drawn as eagerly (inductor's own generator draws others)
-        compiled, compiled_losses = fit(preset, compile=True)
+        compiled, compiled_losses = fit(preset, compile=True, steps=10)
     assert plain.compiled_step is None
     # fullgraph=True: a graph break would have failed the compile, and CompiledOrEager would have gone on plainly
     assert compiled.compiled_step.compiled is not None and compiled.compiled_step.failure is None
-    assert len(compiled_losses) == len(plain_losses) == 4
-    # four steps of Adam from the same weights on the same rays: the same losses to float32's summation order
+    assert len(_debug_get_cache_entry_list(radiance_field.RadianceFieldModule.step_losses.__code__)) == 1  # one graph for all steps
+    assert len(compiled_losses) == len(plain_losses) == 10
+    # ten steps of Adam from the same weights on the same rays: the same losses to float32's summation order
     assert compiled_losses == pytest.approx(plain_losses, rel=1e-4)
-    assert len(set(plain_losses)) == 4  # it trained: each step's loss its own
+    assert len(set(plain_losses)) == 10  # it trained: each step's loss its own
 
 
 def test_compiling_a_step_whose_sizes_depend_on_the_data_is_refused_in_one_line():
@@ -100,7 +105,6 @@ def test_the_rays_a_step_follow_the_sample_budget_read_a_step_late_and_compile_o
     assert compiled.compiled_step.failure is None
     assert rays_compiled.rays == rays.rays and len(set(rays.rays)) >= 2
     assert compiled_losses == pytest.approx(plain_losses, rel=1e-4)
-    from torch._dynamo.eval_frame import _debug_get_cache_entry_list
     assert len(_debug_get_cache_entry_list(radiance_field.RadianceFieldModule.step_losses.__code__)) == 1
 
 
@@ -112,12 +116,28 @@ def test_a_ray_budget_needs_a_sampler_of_fixed_capacity(scene_cache, monkeypatch
         trainer.fit(instantiate(cfg.model), datamodule=instantiate(cfg.data))
 
 
-def test_a_resumed_run_goes_on_with_the_ray_count_it_had():
-    budget = RayBudget()
-    budget.load_state_dict({"rays": 3072})
-    trainer = SimpleNamespace(datamodule=SimpleNamespace(batch_size=16384))
-    budget.on_train_start(trainer, None)
-    assert trainer.datamodule.batch_size == 3072 and budget.state_dict() == {"rays": 3072}
+def test_a_resumed_run_goes_on_with_the_ray_count_it_had(scene_cache, monkeypatch, tmp_path):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    cfg = compose_config([*PRESETS["fast_blender_gpu"], "data.batch_size=256", "data.val_every=null", "model.compile=false"])
+
+    def run(steps: int, ckpt_path=None) -> tuple[RayBudget, StepRays]:
+        budget, rays = RayBudget(fill=0.9, min_rays=64, max_rays=4096, multiple=64), StepRays()
+        checkpoint = ModelCheckpoint(dirpath=tmp_path / str(steps), filename="step", save_top_k=1, every_n_train_steps=steps)
+        trainer = L.Trainer(max_steps=steps, logger=False, enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
+                            callbacks=[budget, rays, checkpoint])
+        trainer.fit(instantiate(cfg.model), datamodule=instantiate(cfg.data), ckpt_path=ckpt_path)
+        return budget, rays
+
+    first, _ = run(6)
+    assert first.rays is not None and first.rays != 256
+    _, resumed = run(9, ckpt_path=tmp_path / "6" / "step.ckpt")
+    assert resumed.rays[0] == first.rays  # the first step after resuming, not data.batch_size's 256
+
+
+def test_a_float16_table_needs_loss_scaling(scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    with pytest.raises(ValueError, match="table_precision=float16 needs trainer.precision=16-mixed"):
+        fit("fast_blender_gpu", compile=False, steps=1, overrides=["model.field.encoding.table_precision=float16"])
 
 
 def test_where_compiling_fails_the_step_runs_plainly_after_one_warning(scene_cache, monkeypatch):

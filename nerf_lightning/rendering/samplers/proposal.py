@@ -130,14 +130,19 @@ class ProposalSampler(RaySampler):
             raise ValueError(f"ProposalSampler needs bake_resolution >= 1 or None, got {bake_resolution}")
         self.bake_resolution = bake_resolution
         self._bakes: dict[int, tuple[tuple, nn.Module]] = {}  # level -> (the weights it was baked from, the bake)
-        self.step = 0
+        # what a training step reads of the step count, set by update(): a compiled step (model.compile) reads a tensor
+        # whose value changes and a flag of two values, not the count itself (a new constant each step: a new graph)
+        self.learns = True
+        self.register_buffer("exponent", torch.tensor(0.0), persistent=False)
+        self.update(0, None)
 
-    def update(self, step: int, field: Field) -> None:
-        self.step = step
+    def update(self, step: int, field: Field | None) -> None:
+        self.learns = step < self.warmup_steps or step % self.update_every == 0
+        self.exponent.fill_(self.anneal(step))
 
-    def anneal(self) -> float:
+    def anneal(self, step: int) -> float:
         """The exponent the proposal weights are raised to before resampling: 0 at step 0, 1 from ``anneal_steps`` on."""
-        x = min(max(self.step / max(self.anneal_steps, 1), 0.0), 1.0)
+        x = min(max(step / max(self.anneal_steps, 1), 0.0), 1.0)
         return (self.anneal_slope * x) / ((self.anneal_slope - 1.0) * x + 1.0)
 
     def baked(self, level: int) -> nn.Module:
@@ -150,8 +155,8 @@ class ProposalSampler(RaySampler):
 
     def sample(self, rays: Rays, space: SceneSpace, field: Field, perturb: bool) -> RaySamples:
         t_enter, t_exit = space.ray_range(rays)
-        learn = perturb and torch.is_grad_enabled() and (self.step < self.warmup_steps or self.step % self.update_every == 0)
-        exponent = self.anneal() if perturb else 1.0
+        learn = perturb and torch.is_grad_enabled() and self.learns
+        exponent = self.exponent if perturb else 1.0
         # a module still training (the live viewer renders between steps) changes every step: a bake would not outlive the frame
         bake = self.bake_resolution is not None and not self.training and not perturb and not torch.is_grad_enabled()
         proposals = [self.baked(level) for level in range(len(self.proposal_fields))] if bake else self.proposal_fields

@@ -138,7 +138,8 @@ class ProposalSampler(RaySampler):
 
     def update(self, step: int, field: Field | None) -> None:
         self.learns = step < self.warmup_steps or step % self.update_every == 0
-        self.exponent.fill_(self.anneal(step))
+        self.exponent_value = self.anneal(step)
+        self.exponent.fill_(self.exponent_value)
 
     def anneal(self, step: int) -> float:
         """The exponent the proposal weights are raised to before resampling: 0 at step 0, 1 from ``anneal_steps`` on."""
@@ -156,7 +157,9 @@ class ProposalSampler(RaySampler):
     def sample(self, rays: Rays, space: SceneSpace, field: Field, perturb: bool) -> RaySamples:
         t_enter, t_exit = space.ray_range(rays)
         learn = perturb and torch.is_grad_enabled() and self.learns
-        exponent = self.exponent if perturb else 1.0
+        # compiled: the tensor (the graph outlives the step); plainly, the number (PyTorch raises to a number in its own
+        # rounding, and the CPU presets keep their results bit for bit)
+        exponent = (self.exponent if torch.compiler.is_compiling() else self.exponent_value) if perturb else 1.0
         # a module still training (the live viewer renders between steps) changes every step: a bake would not outlive the frame
         bake = self.bake_resolution is not None and not self.training and not perturb and not torch.is_grad_enabled()
         proposals = [self.baked(level) for level in range(len(self.proposal_fields))] if bake else self.proposal_fields

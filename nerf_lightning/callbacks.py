@@ -225,10 +225,15 @@ class StepProgressBar(ProgressBar):
         if self.bar is None:
             return
         self.bar.update(trainer.global_step - self.bar.n)
-        if trainer.global_step % max(trainer.log_every_n_steps, 1) != 0:  # reading the metrics waits on the device
-            return
-        shown = {key.replace("/", " "): f"{float(value):.2f}" for key, value in trainer.progress_bar_metrics.items() if "psnr" in key}
-        self.bar.set_postfix(shown, refresh=False)
+        if trainer.global_step % max(trainer.log_every_n_steps, 1) == 0:  # reading the metrics waits on the device
+            self._show_psnr(trainer, refresh=False)
+
+    def _show_psnr(self, trainer: L.Trainer, refresh: bool) -> None:
+        # the logged tensors, read here and only here: a metric logged with prog_bar=True would be read back by
+        # Lightning after every step (a wait for the device each step)
+        shown = {key.replace("/", " "): f"{float(value):.2f}" for key, value in trainer.callback_metrics.items()
+                 if key in ("train/psnr", "val/psnr")}
+        self.bar.set_postfix(shown, refresh=refresh)
 
     def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if self.bar is not None:
@@ -236,7 +241,8 @@ class StepProgressBar(ProgressBar):
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if self.bar is not None:
-            self.bar.set_description_str("training", refresh=True)
+            self.bar.set_description_str("training", refresh=False)
+            self._show_psnr(trainer, refresh=True)  # the new validation PSNR (validation has waited for the device already)
 
     def _close(self) -> None:
         if self.bar is not None:

@@ -67,9 +67,11 @@ class HostSyncs(TorchDispatchMode):
 
 
 class CountHostSyncs(L.Callback):
-    """A Lightning callback counting :class:`HostSyncs` in each training step (``training_step``, backward and the
-    optimiser step: from ``on_train_batch_start`` to ``on_train_batch_end``) into ``steps``, one Counter a step, and
-    writing them to ``path`` (a JSON list) when training ends; ``skip_nan_guard`` turns the model's NaN guard off
+    """A Lightning callback counting :class:`HostSyncs` a training step into ``steps``, one Counter a step, and
+    writing them to ``path`` (a JSON list) when training ends. A step counts from its ``on_train_batch_start`` to
+    the next step's: its forward, backward and optimiser step, and also what Lightning and every callback do around
+    it (logging, the progress bar, drawing the next batch), which wait for the device as much as the step itself;
+    a validation ends the step before it. ``skip_nan_guard`` turns the model's NaN guard off
     (``on_before_backward``, which reads the loss back):
     ``+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: syncs.json}``."""
 
@@ -82,16 +84,24 @@ class CountHostSyncs(L.Callback):
         if self.skip_nan_guard:  # to count the rest: the guard reads the loss back (every step on a CPU)
             pl_module.on_before_backward = lambda loss: None
 
-    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
-        self._mode = HostSyncs()
-        self._mode.__enter__()
-
-    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
+    def _end_step(self) -> None:
         if self._mode is not None:
             self._mode.__exit__(None, None, None)
             self.steps.append(self._mode.counts)
             self._mode = None
 
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
+        self._end_step()
+        self._mode = HostSyncs()
+        self._mode.__enter__()
+
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._end_step()
+
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._end_step()
         if self.path is not None:
             write_json(Path(self.path), [dict(counts) for counts in self.steps])
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self._end_step()

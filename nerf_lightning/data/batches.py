@@ -116,4 +116,10 @@ class StepBatchesDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         batches = SegmentedBatches(self.draw_batch, steps_done=self._steps_done, segment_length=self.segment_length, seed=self.seed, rank=self._rank)
-        return DataLoader(batches, batch_size=None, num_workers=0)
+        return DataLoader(batches, batch_size=None, num_workers=0, pin_memory=self._pins_memory())
+
+    def _pins_memory(self) -> bool:
+        """Batches in page-locked memory when training on a CUDA device: Lightning then copies them there without
+        waiting (a copy from ordinary memory makes the host wait for the device to finish what it was given)."""
+        strategy = getattr(self.trainer, "strategy", None) if self.trainer is not None else None
+        return getattr(getattr(strategy, "root_device", None), "type", None) == "cuda"

@@ -54,7 +54,7 @@ class ImageFieldModule(FieldModule):
         rgb = self.field(batch["xy"])
         loss = F.mse_loss(rgb, batch["rgb"])
         self.log("train/loss", loss, on_step=True, on_epoch=False)
-        self.log("train/psnr", mse_to_psnr(loss.detach()), on_step=True, on_epoch=False, prog_bar=True)
+        self.log("train/psnr", mse_to_psnr(loss.detach()), on_step=True, on_epoch=False)
         return loss
 
     @torch.no_grad()

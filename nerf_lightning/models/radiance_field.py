@@ -236,7 +236,7 @@ class RadianceFieldModule(SceneModule):
         # the rays a fixed-capacity sampler would have held whole (callbacks.RayBudget sizes later steps by it), or None
         self.rays_that_fit = terms.get("rays_that_fit")
         self.log("train/samples_per_ray", terms.pop("samples_per_ray"), on_step=True)  # tensors: not read back here
-        self.log("train/psnr", mse_to_psnr(terms.pop("mse")), on_step=True, prog_bar=True)
+        self.log("train/psnr", mse_to_psnr(terms.pop("mse")), on_step=True)
         for name, value in terms.items():
             self.log(f"train/{name}", value, on_step=True)
         self.log("train/loss", loss.detach(), on_step=True, on_epoch=False)

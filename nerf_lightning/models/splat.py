@@ -212,7 +212,7 @@ class SplatModule(SceneModule):
         if regulariser is not None:
             loss = loss + regulariser
         self.log("train/loss", loss, on_step=True, on_epoch=False)
-        self.log("train/psnr", mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)), on_step=True, prog_bar=True)
+        self.log("train/psnr", mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)), on_step=True)
         self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
         return loss
 

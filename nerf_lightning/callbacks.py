@@ -419,7 +419,8 @@ class RayBudget(L.Callback):
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # resumed: the ray count it had (the callback's state is restored before this hook, and the first batch is
         # drawn after it)
-        if self.rays is not None:
+        if self.rays is not None:  # within this run's bounds, which may have changed (a lower max_rays after running out of memory)
+            self.rays = min(max(self.rays // self.multiple * self.multiple, self.min_rays), self.max_rays)
             trainer.datamodule.batch_size = self.rays
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:

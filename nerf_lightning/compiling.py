@@ -40,6 +40,8 @@ class CompiledOrEager:
                     log.info("compiling %s with torch.compile: the first call takes a while (seconds once cached on disk)", self.what)
                     self.compiled = torch.compile(self.function, **self.options)
                 return self.compiled(*args)
+            except torch.OutOfMemoryError:
+                raise  # the input's size, not the compiler: a plain retry that fits would turn compiling off for good
             except Exception as error:  # noqa: BLE001 - the plain function decides whether it was the compiler's fault
                 # an error of the input itself (a bad shape, out of memory) raises again here, as the function's own,
                 # and leaves compiling on; only a call that runs plainly turns it off

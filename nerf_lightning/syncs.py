@@ -12,6 +12,7 @@ needs no GPU to say that a step has none.
 
 from __future__ import annotations
 
+import warnings
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -73,12 +74,19 @@ class CountHostSyncs(L.Callback):
     it (logging, the progress bar, drawing the next batch), which wait for the device as much as the step itself;
     a validation ends the step before it. ``skip_nan_guard`` turns the model's NaN guard off
     (``on_before_backward``, which reads the loss back):
-    ``+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: syncs.json}``."""
+    ``+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: syncs.json}``.
+
+    On CUDA it also counts what CUDA itself reports as a synchronizing call (``torch.cuda.set_sync_debug_mode``,
+    under ``cuda (synchronizing call)``): copies between the host and the device too, which no aten op names.
+    While a dispatch mode is on, ``torch.compile`` runs the function as written, so with ``model.compile=true`` the
+    count is of the plain step (the ops the compiled graph runs too)."""
 
     def __init__(self, path: str | None = None, skip_nan_guard: bool = False) -> None:
         self.path, self.skip_nan_guard = path, skip_nan_guard
         self.steps: list[Counter[str]] = []
         self._mode: HostSyncs | None = None
+        self._cuda_warnings: warnings.catch_warnings | None = None
+        self._caught: list[warnings.WarningMessage] = []
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if self.skip_nan_guard:  # to count the rest: the guard reads the loss back (every step on a CPU)
@@ -87,6 +95,13 @@ class CountHostSyncs(L.Callback):
     def _end_step(self) -> None:
         if self._mode is not None:
             self._mode.__exit__(None, None, None)
+            if self._cuda_warnings is not None:
+                torch.cuda.set_sync_debug_mode(0)
+                self._cuda_warnings.__exit__(None, None, None)
+                reported = sum("synchroniz" in str(warning.message) for warning in self._caught)
+                if reported:
+                    self._mode.counts["cuda (synchronizing call)"] += reported
+                self._cuda_warnings = None
             self.steps.append(self._mode.counts)
             self._mode = None
 
@@ -94,6 +109,11 @@ class CountHostSyncs(L.Callback):
         self._end_step()
         self._mode = HostSyncs()
         self._mode.__enter__()
+        if pl_module.device.type == "cuda":  # CUDA's own report of every call that waits, copies included
+            self._cuda_warnings = warnings.catch_warnings(record=True)
+            self._caught = self._cuda_warnings.__enter__()
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
 
     def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._end_step()

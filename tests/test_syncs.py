@@ -1,6 +1,8 @@
 """HostSyncs counts the ops that make the host wait for a GPU, on any device: a value read back, nonzero, a
 boolean mask's index; and none for ops of fixed shapes."""
 
+import warnings
+
 import torch
 
 from nerf_lightning.syncs import HostSyncs
@@ -28,3 +30,22 @@ def test_fixed_shape_ops_are_not_counted():
         _ = torch.repeat_interleave(torch.arange(3), torch.tensor([1, 2, 3]), output_size=6)
         y[torch.tensor([1, 5])].sum().backward()  # an index of integers
     assert syncs.total == 0, syncs.counts
+
+
+def test_on_cuda_the_callback_also_counts_what_cuda_reports_as_synchronizing(monkeypatch):
+    # CUDA's own report (torch.cuda.set_sync_debug_mode("warn")) names copies between host and device, which no aten
+    # op does; here a stand-in for CUDA warns as it would, since this machine has none
+    from types import SimpleNamespace
+
+    from nerf_lightning.syncs import CountHostSyncs
+
+    modes = []
+    monkeypatch.setattr(torch.cuda, "set_sync_debug_mode", modes.append)
+    callback, module = CountHostSyncs(), SimpleNamespace(device=torch.device("cuda"))
+    callback.on_train_batch_start(None, module, None, 0)
+    warnings.warn("called a synchronizing CUDA operation", UserWarning)  # as a pageable host-to-device copy does
+    warnings.warn("called a synchronizing CUDA operation", UserWarning)
+    callback.on_train_batch_start(None, module, None, 1)  # the first step ends where the second starts
+    callback.on_train_end(None, module)
+    assert callback.steps == [{"cuda (synchronizing call)": 2}, {}]
+    assert modes == ["warn", 0, "warn", 0]

@@ -78,5 +78,5 @@ class RayDataModule(SceneDataModule):
         if self.mask_mode == "background":  # the pixels outside the object show the background; the model sees which
             masks = self.train_masks(index.device).reshape(-1)
             batch["mask"] = masks[index.cpu()].to(index.device, non_blocking=True) if masks.device != index.device else masks[index]
-            batch["rgb"] = composite_background(batch["rgb"], batch["mask"], self.scene.background)
+            batch["rgb"] = composite_background(batch["rgb"], batch["mask"], self.background_on(index.device))
         return batch

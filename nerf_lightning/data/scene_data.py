@@ -94,6 +94,7 @@ class SceneDataModule(StepBatchesDataModule):
         self.space: SceneSpace | None = None
         self._on_device: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
         self._masks_on_device: dict[torch.device, torch.Tensor] = {}
+        self._background_on_device: dict[torch.device, torch.Tensor] = {}
 
     def setup(self, stage: str | None = None) -> None:
         if self.scene is not None:
@@ -132,6 +133,13 @@ class SceneDataModule(StepBatchesDataModule):
             on_device = self.cameras_and_images(device)[2] is not None
             self._masks_on_device[device] = self.scene.train.masks.to(device) if on_device else self.scene.train.masks
         return self._masks_on_device[device]
+
+    def background_on(self, device: torch.device) -> torch.Tensor:
+        """The scene's background colour (3,) on ``device``, moved once: a copy from the host at every training step
+        would make the host wait for a GPU."""
+        if device not in self._background_on_device:
+            self._background_on_device[device] = self.scene.background.to(device)
+        return self._background_on_device[device]
 
     def view_batch(self, views: Views, index: int) -> dict[str, Any]:
         """:func:`view_batch` of one of ``views`` with this datamodule's masks mode."""

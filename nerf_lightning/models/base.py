@@ -75,7 +75,9 @@ class FieldModule(L.LightningModule):
         return replace_parameter(owner, name, value, optimizers, rows_from)
 
     def on_before_backward(self, loss: torch.Tensor) -> None:
-        if self.device.type != "cpu" and self.global_step % max(self.trainer.log_every_n_steps, 1) != 0:
+        # on a GPU only at the steps that log, which read values back anyway (global_step counts the steps before
+        # this one; the logger, the progress bar and the PSNR history look after the optimiser step, one higher)
+        if self.device.type != "cpu" and (self.global_step + 1) % max(self.trainer.log_every_n_steps, 1) != 0:
             return
         if not bool(torch.isfinite(loss.detach())):
             raise NonFiniteLossError(

@@ -90,14 +90,40 @@ class OccupancyGrid(nn.Module):
         return self.cell_points(torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1))
 
     @torch.no_grad()
-    def update(self, step: int, density_fn: DensityFn, step_size: float, chunk_size: int = 65536) -> bool:
+    def update(self, step: int, density_fn: DensityFn, step_size: float, chunk_size: int = 65536, on_device: bool = False) -> bool:
         """Refresh the grid at training ``step`` if it is due; returns whether it refreshed.
 
         ``density_fn``: (M, 3) field-space points -> (M,) densities, evaluated at a random point of each chosen cell.
         ``step_size``: the marcher's step, which turns density into opacity.
+        ``on_device``: draw the cells and their points on the grid's device and pick the occupied ones there
+        (:meth:`_cells_on_device`), so that the refresh neither reads a value back nor copies from the host: a
+        fixed-shape training step's refresh. Otherwise they are drawn on the host, as they always were (the same
+        cells on every device).
         """
         if step % self.update_every != 0:
             return False
+        if on_device:
+            cells, unit = self._cells_on_device(step)
+        else:
+            cells, unit = self._cells_on_host(step)
+            cells, unit = cells.to(self.aabb.device), unit.to(self.aabb)
+        density = self._densities(density_fn, self.cell_points(unit), chunk_size)
+        occupancy, estimate = self.occupancy.view(-1), density.to(self.occupancy) * step_size
+        if step < self.warmup_steps:  # every cell was just evaluated: take the new estimate as it is
+            occupancy.copy_(estimate)
+        else:
+            occupancy[cells] = torch.maximum(occupancy[cells] * self.decay, estimate)
+        # the threshold, or the mean where that is lower, compared as a tensor: no value read back
+        self.binary.copy_(self.occupancy > self.occupancy.mean().clamp(max=self.threshold))
+        return True
+
+    def _coordinates(self, cells: torch.Tensor) -> torch.Tensor:
+        """(M,) flat cell indices -> (M, 3) integer coordinates (x, y, z)."""
+        return torch.stack([cells // self.resolution**2, cells // self.resolution % self.resolution, cells % self.resolution], dim=-1)
+
+    def _cells_on_host(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The cells refresh ``step`` evaluates, (M,), and a random point in each, (M, 3) in the unit cube, drawn on
+        the host from ``seed + step``: every cell in warm-up, then R^3 / 4 uniform and as many occupied ones."""
         count = self.resolution**3
         generator = torch.Generator().manual_seed(self.seed + step)
         if step < self.warmup_steps:
@@ -107,17 +133,28 @@ class OccupancyGrid(nn.Module):
             occupied = self.binary.flatten().nonzero()[:, 0].cpu()
             picked = occupied[torch.randint(len(occupied), (count // 4,), generator=generator)] if len(occupied) else occupied
             cells = torch.cat([uniform, picked])
-        coords = torch.stack([cells // self.resolution**2, cells // self.resolution % self.resolution, cells % self.resolution], dim=-1)
-        unit = (coords + torch.rand(coords.shape, generator=generator)) / self.resolution
-        cells, points = cells.to(self.aabb.device), self.cell_points(unit.to(self.aabb))
-        density = self._densities(density_fn, points, chunk_size)
-        occupancy, estimate = self.occupancy.view(-1), density.to(self.occupancy) * step_size
-        if step < self.warmup_steps:  # every cell was just evaluated: take the new estimate as it is
-            occupancy.copy_(estimate)
+        coords = self._coordinates(cells)
+        return cells, (coords + torch.rand(coords.shape, generator=generator)) / self.resolution
+
+    def _cells_on_device(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`_cells_on_host`, drawn on the grid's device from ``seed + step`` (other random numbers than the
+        host's) in sizes that do not depend on the grid: the occupied cells are listed by ``nonzero_static`` (padded
+        to R^3) and R^3 / 4 of them picked by a random index below their count, a device tensor; an empty grid's
+        picks are uniform ones again."""
+        count, device = self.resolution**3, self.aabb.device
+        generator = torch.Generator(device=device).manual_seed(self.seed + step)
+        if step < self.warmup_steps:
+            cells = torch.arange(count, device=device)
         else:
-            occupancy[cells] = torch.maximum(occupancy[cells] * self.decay, estimate)
-        self.binary.copy_(self.occupancy > min(self.threshold, float(self.occupancy.mean())))
-        return True
+            uniform = torch.randint(count, (count // 4,), generator=generator, device=device)
+            binary = self.binary.flatten()
+            occupied = torch.nonzero_static(binary, size=count, fill_value=0)[:, 0]  # the occupied ones first, then padding
+            n_occupied = binary.sum()
+            index = (torch.rand(count // 4, generator=generator, device=device) * n_occupied).long()
+            picked = occupied[torch.minimum(index, (n_occupied - 1).clamp(min=0))]
+            cells = torch.cat([uniform, torch.where(n_occupied > 0, picked, uniform)])
+        coords = self._coordinates(cells)
+        return cells, (coords + torch.rand(coords.shape, generator=generator, device=device)) / self.resolution
 
     def _densities(self, density_fn: DensityFn, points: torch.Tensor, chunk_size: int) -> torch.Tensor:
         """(M,) float32 densities at (M, 3) points, outside any autocast: under bf16-mixed an untrained field's
@@ -132,7 +169,7 @@ class OccupancyGrid(nn.Module):
             points = self.cell_centres().reshape(-1, 3)
             density = self._densities(density_fn, points, chunk_size)
             self.occupancy.copy_((density * step_size).reshape(self.occupancy.shape))
-            self.binary.copy_(self.occupancy > min(self.threshold, float(self.occupancy.mean())))
+            self.binary.copy_(self.occupancy > self.occupancy.mean().clamp(max=self.threshold))
 
 
 def step_edges(start: float, stop: float, step_size: float, cone_angle: float) -> torch.Tensor:

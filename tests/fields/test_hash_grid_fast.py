@@ -169,6 +169,27 @@ def test_a_failing_compiler_leaves_plain_pytorch_with_one_warning(monkeypatch):
         assert twice(torch.tensor(4.0)) == 8.0
 
 
+def test_running_out_of_memory_raises_and_leaves_compiling_on(monkeypatch):
+    """A compiled call that runs out of memory (a larger batch): the error is the caller's, and the next call compiles
+    again (a plain retry that fit would otherwise have turned compiling off for the rest of the run)."""
+    calls = []
+
+    def out_of_memory(function, **options):
+        def compiled(*args):
+            calls.append(args[0].shape)
+            if args[0].numel() > 2:
+                raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")
+            return function(*args)
+        return compiled
+    monkeypatch.setattr(torch, "compile", out_of_memory)
+    twice = CompiledOrEager(lambda x: 2 * x, "doubling")
+    with pytest.raises(torch.OutOfMemoryError):
+        twice(torch.ones(4))
+    assert twice.failure is None
+    torch.testing.assert_close(twice(torch.ones(2)), torch.full((2,), 2.0))
+    assert calls == [(4,), (2,)]
+
+
 def test_gathering_rows_in_parts_equals_index_select_and_its_gradient():
     """Rows of two as complex64/128 elements or as rows, and rows of three, in two parts as the encoding gathers them
     (the dense levels' rows from the table's first row, the hashed levels' from mid-table): the values and the table's

@@ -120,8 +120,8 @@ def test_a_resumed_run_goes_on_with_the_ray_count_it_had(scene_cache, monkeypatc
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     cfg = compose_config([*PRESETS["fast_blender_gpu"], "data.batch_size=256", "data.val_every=null", "model.compile=false"])
 
-    def run(steps: int, ckpt_path=None) -> tuple[RayBudget, StepRays]:
-        budget, rays = RayBudget(fill=0.9, min_rays=64, max_rays=4096, multiple=64), StepRays()
+    def run(steps: int, ckpt_path=None, min_rays: int = 64, max_rays: int = 4096) -> tuple[RayBudget, StepRays]:
+        budget, rays = RayBudget(fill=0.9, min_rays=min_rays, max_rays=max_rays, multiple=64), StepRays()
         checkpoint = ModelCheckpoint(dirpath=tmp_path / str(steps), filename="step", save_top_k=1, every_n_train_steps=steps)
         trainer = L.Trainer(max_steps=steps, logger=False, enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0,
                             callbacks=[budget, rays, checkpoint])
@@ -132,6 +132,11 @@ def test_a_resumed_run_goes_on_with_the_ray_count_it_had(scene_cache, monkeypatc
     assert first.rays is not None and first.rays != 256
     _, resumed = run(9, ckpt_path=tmp_path / "6" / "step.ckpt")
     assert resumed.rays[0] == first.rays  # the first step after resuming, not data.batch_size's 256
+    # resumed with other bounds (a lower max_rays after running out of memory, say): the saved count is held to them
+    # from the first step
+    bound = 128 if first.rays != 128 else 192
+    _, bounded = run(8, ckpt_path=tmp_path / "6" / "step.ckpt", min_rays=bound, max_rays=bound)
+    assert bounded.rays[0] == bound
 
 
 def test_a_float16_table_needs_loss_scaling(scene_cache, monkeypatch):

@@ -58,7 +58,8 @@ class OccupancyGridSampler(RaySampler):
         )
 
     def update(self, step: int, field: Field) -> None:
-        self.grid.update(step, field.density, self.step_size)
+        # a fixed-capacity step refreshes on the device too, so that nothing waits for it there either
+        self.grid.update(step, field.density, self.step_size, on_device=self.capacity is not None)
 
     def extra_repr(self) -> str:
         capacity = f", capacity={self.capacity}, march_capacity={self.march_capacity}" if self.capacity is not None else ""

@@ -420,7 +420,7 @@ class RayBudget(L.Callback):
         # resumed: the ray count it had (the callback's state is restored before this hook, and the first batch is
         # drawn after it)
         if self.rays is not None:  # within this run's bounds, which may have changed (a lower max_rays after running out of memory)
-            self.rays = min(max(self.rays // self.multiple * self.multiple, self.min_rays), self.max_rays)
+            self.rays = self._bounded(self.rays)
             trainer.datamodule.batch_size = self.rays
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
@@ -443,9 +443,12 @@ class RayBudget(L.Callback):
         if event is not None and not event.query():
             return  # not there yet: a later step looks again
         self.pending = None
-        rays = int(self.fill * float(host.numpy())) // self.multiple * self.multiple  # the host's copy: no device op
-        self.rays = min(max(rays, self.min_rays), self.max_rays)
+        self.rays = self._bounded(int(self.fill * float(host.numpy())))  # the host's copy: no device op
         trainer.datamodule.batch_size = self.rays  # the batches drawn from now on (the next may be drawn already)
+
+    def _bounded(self, rays: int) -> int:
+        """``rays`` rounded down to a multiple of ``multiple`` and kept within ``min_rays``..``max_rays``."""
+        return min(max(rays // self.multiple * self.multiple, self.min_rays), self.max_rays)
 
     def state_dict(self) -> dict[str, Any]:
         return {"rays": self.rays}

@@ -98,9 +98,12 @@ class CountHostSyncs(L.Callback):
             if self._cuda_warnings is not None:
                 torch.cuda.set_sync_debug_mode(0)
                 self._cuda_warnings.__exit__(None, None, None)
-                reported = sum("synchroniz" in str(warning.message) for warning in self._caught)
+                reported = [warning for warning in self._caught if "synchroniz" in str(warning.message)]
                 if reported:
-                    self._mode.counts["cuda (synchronizing call)"] += reported
+                    self._mode.counts["cuda (synchronizing call)"] += len(reported)
+                for warning in self._caught:  # the run's other warnings, passed on as they came
+                    if warning not in reported:
+                        warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
                 self._cuda_warnings = None
             self.steps.append(self._mode.counts)
             self._mode = None

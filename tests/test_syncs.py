@@ -42,10 +42,14 @@ def test_on_cuda_the_callback_also_counts_what_cuda_reports_as_synchronizing(mon
     modes = []
     monkeypatch.setattr(torch.cuda, "set_sync_debug_mode", modes.append)
     callback, module = CountHostSyncs(), SimpleNamespace(device=torch.device("cuda"))
-    callback.on_train_batch_start(None, module, None, 0)
-    warnings.warn("called a synchronizing CUDA operation", UserWarning)  # as a pageable host-to-device copy does
-    warnings.warn("called a synchronizing CUDA operation", UserWarning)
-    callback.on_train_batch_start(None, module, None, 1)  # the first step ends where the second starts
-    callback.on_train_end(None, module)
+    with warnings.catch_warnings(record=True) as passed_on:
+        warnings.simplefilter("always")
+        callback.on_train_batch_start(None, module, None, 0)
+        warnings.warn("called a synchronizing CUDA operation", UserWarning)  # as a pageable host-to-device copy does
+        warnings.warn("called a synchronizing CUDA operation", UserWarning)
+        warnings.warn("an unrelated warning of the run", UserWarning)
+        callback.on_train_batch_start(None, module, None, 1)  # the first step ends where the second starts
+        callback.on_train_end(None, module)
     assert callback.steps == [{"cuda (synchronizing call)": 2}, {}]
     assert modes == ["warn", 0, "warn", 0]
+    assert [str(w.message) for w in passed_on] == ["an unrelated warning of the run"]  # passed on, not swallowed

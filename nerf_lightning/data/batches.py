@@ -121,5 +121,5 @@ class StepBatchesDataModule(L.LightningDataModule):
     def _pins_memory(self) -> bool:
         """Batches in page-locked memory when training on a CUDA device: Lightning then copies them there without
         waiting (a copy from ordinary memory makes the host wait for the device to finish what it was given)."""
-        strategy = getattr(self.trainer, "strategy", None) if self.trainer is not None else None
-        return getattr(getattr(strategy, "root_device", None), "type", None) == "cuda"
+        device = getattr(getattr(self.trainer, "strategy", None), "root_device", None)
+        return getattr(device, "type", None) == "cuda"

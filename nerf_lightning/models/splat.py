@@ -14,6 +14,7 @@ from typing import Any
 
 import kornia
 import torch
+from torch.profiler import record_function
 
 from nerf_lightning.devices import memory_of
 from nerf_lightning.geometry.space import SceneSpace
@@ -21,7 +22,8 @@ from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import SceneModule
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
-from nerf_lightning.splats.rasterize import MAX_PAIRS, rasterize
+from nerf_lightning.splats.rasterize import MAX_PAIRS
+from nerf_lightning.splats.rasterizers import AUTO, choose_rasterizer, rasterize_view
 from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
 from nerf_lightning.splats.start import points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
@@ -53,8 +55,10 @@ class SplatModule(SceneModule):
             Gaussians' ``sh_degree``.
         ssim_weight: the loss is (1 - w) L1 + w (1 - SSIM).
         antialiased: Mip-Splatting's opacity compensation of the low-pass filter.
-        max_pairs: (Gaussian, pixel) pairs drawn at once (:mod:`~nerf_lightning.splats.rasterize`): the memory a
-            view takes, about 100 bytes a pair with gradients.
+        rasterizer: which rasteriser draws (:mod:`~nerf_lightning.splats.rasterizers`): ``auto`` (numba tiles on a
+            CPU, plain PyTorch on a GPU), ``tiles`` or ``pairs`` (plain PyTorch everywhere).
+        max_pairs: (Gaussian, pixel) pairs drawn at once by the ``pairs`` rasteriser
+            (:mod:`~nerf_lightning.splats.rasterize`): the memory a view takes, about 100 bytes a pair with gradients.
         random_count, random_start, random_near, random_extent: the random start of a capture without sparse points.
     """
 
@@ -63,7 +67,7 @@ class SplatModule(SceneModule):
     def __init__(self, gaussians: Gaussians, optimizer: Callable[..., torch.optim.Optimizer], learning_rates: dict[str, float],
                  strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
-                 max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
+                 rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
                  random_extent: float = 1.3) -> None:
         super().__init__(optimizer, scheduler)
         missing = set(PARAMETERS) - set(learning_rates)
@@ -73,6 +77,8 @@ class SplatModule(SceneModule):
         self.learning_rates = dict(learning_rates)
         self.steps, self.means_final_ratio, self.sh_degree_interval = steps, means_final_ratio, sh_degree_interval
         self.ssim_weight, self.antialiased, self.max_pairs = ssim_weight, antialiased, max_pairs
+        choose_rasterizer("cuda", rasterizer)  # a wrong name refused now, not at the first view
+        self.rasterizer = rasterizer
         if random_start not in ("box", "views"):
             raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")
         self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
@@ -161,11 +167,15 @@ class SplatModule(SceneModule):
         NeRF renderers measure it), accumulation (H, W), and the :class:`Projection` (for the strategy)."""
         g = self.gaussians
         K, c2w = K.to(self.device, torch.float32), c2w.to(self.device, torch.float32)
-        projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
-        directions = g.means[projection.ids] - c2w[:3, 3]
-        colours = spherical_harmonics(self.sh_degree(), g.coefficients[projection.ids], directions)
+        # the labels name the step's stages in a profile (scripts/profile_splat_step.py)
+        with record_function("splats.project"):
+            projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
+        with record_function("splats.sh"):
+            directions = g.means[projection.ids] - c2w[:3, 3]
+            colours = spherical_harmonics(self.sh_degree(), g.coefficients[projection.ids], directions)
         background = self.space.background if background is None else background
-        out = rasterize(projection, colours, height, width, background.to(colours), self.max_pairs)
+        with record_function("splats.rasterize"):
+            out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs)
         out["depth"] = out["depth"] * pixel_ray_lengths(K, height, width)
         return out, projection
 
@@ -198,14 +208,8 @@ class SplatModule(SceneModule):
         mask = batch.get("mask")  # data.masks=exclude: no gradient reaches a pixel outside; the loss a mean over the mask
         if mask is not None:
             rgb = torch.where(mask[..., None], rgb, image)
-        ssim_map = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11)
-        if mask is None:
-            l1, ssim = (rgb - image).abs().mean(), ssim_map.mean()
-        else:
-            count = mask.sum().clamp(min=1)
-            l1 = ((rgb - image).abs().mean(dim=-1) * mask).sum() / count
-            ssim = (ssim_map[0].mean(dim=0) * mask).sum() / count
-        loss = (1.0 - self.ssim_weight) * l1 + self.ssim_weight * (1.0 - ssim)
+        with record_function("splats.loss"):
+            loss = self.photometric_loss(rgb, image, mask)
         if not loss.requires_grad:  # the view saw no Gaussian: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
         regulariser = None if self.strategy is None else self.strategy.loss(self.gaussians)  # MCMC's
@@ -216,17 +220,30 @@ class SplatModule(SceneModule):
         self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
         return loss
 
+    def photometric_loss(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given."""
+        ssim_map = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11)
+        if mask is None:
+            l1, ssim = (rgb - image).abs().mean(), ssim_map.mean()
+        else:
+            count = mask.sum().clamp(min=1)
+            l1 = ((rgb - image).abs().mean(dim=-1) * mask).sum() / count
+            ssim = (ssim_map[0].mean(dim=0) * mask).sum() / count
+        return (1.0 - self.ssim_weight) * l1 + self.ssim_weight * (1.0 - ssim)
+
     def on_after_backward(self) -> None:
         if self.strategy is not None and self._drawn is not None:
             projection, width, height, share = self._drawn
             if share != 1.0 and projection.means2d.grad is not None:
                 projection.means2d.grad.mul_(share)
-            self.strategy.after_backward(self.gaussians, projection, width, height)
+            with record_function("splats.strategy"):
+                self.strategy.after_backward(self.gaussians, projection, width, height)
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         self._drawn = None
         if self.strategy is not None:
-            self.strategy.after_step(self.gaussians, self.global_step, self.replace_parameter, self.means_lr())
+            with record_function("splats.strategy"):
+                self.strategy.after_step(self.gaussians, self.global_step, self.replace_parameter, self.means_lr())
 
     def means_lr(self) -> float:
         """The means' learning rate this step (their optimiser group's, as its schedule has it; before the optimiser is

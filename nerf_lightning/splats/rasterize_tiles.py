@@ -1,0 +1,276 @@
+"""The rasteriser's CPU fast path: footprints binned into tiles and composited by numba loops, forward and backward,
+as 3D Gaussian splatting and gsplat do it on a GPU.
+
+The same values and gradients as :func:`~nerf_lightning.splats.rasterize_dense.rasterize_dense` (the tests hold them
+equal), without a tensor of (footprint, pixel) pairs:
+
+1. **Binning** (:func:`bin_footprints`): each footprint's pixel box (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`)
+   says which ``tile`` x ``tile`` tiles it touches. Footprints are listed tile by tile, nearest first: they are
+   visited in depth order (a stable sort, ties by index, as the reference) and appended to each of their tiles, so
+   no tile needs a sort of its own.
+2. **Forward** (:func:`composite_tiles`), a parallel loop over tiles: a tile keeps its pixels' transmittance and sums,
+   and takes its footprints nearest first, each over the pixels of its box inside the tile only. A pair is skipped
+   where alpha = min(0.999, o exp(-sigma)) < 1/255; a pixel is done before the footprint that would take its
+   transmittance to 1e-4 or below; a tile stops when all its pixels are done. Each pixel keeps the transmittance it
+   ended with and the tile-list position where it stopped.
+3. **Backward** (:func:`composite_tiles_backward`): each tile walks its list back to front, recovering every pixel's
+   transmittance before a footprint from the one after it (T_i = T_i+1 / (1 - alpha_i)) and the weighted gradient
+   sum of the footprints behind it, so that d loss / d alpha_i = T_i g_i - (sum_{j > i} w_j g_j) / (1 - alpha_i).
+   A footprint's gradient within a tile is summed over the tile's pixels in a fixed order into its own slot of the
+   tile list; :func:`sum_slots` then adds a footprint's slots in a fixed order. No two threads add into one number, so
+   the same input gives the same gradients bit for bit, however the threads are scheduled.
+
+Transmittances and sums are carried in float64 inside the loops (a pixel may take hundreds of footprints, and the
+backward pass divides by 1 - alpha), the outputs are in the inputs' dtype.
+
+The autograd function :class:`TileRasterize` returns each pixel's weighted sums of the footprints' ``features``
+(colour and depth) and its accumulation; :func:`rasterize_tiles` blends the background and divides the depth in
+PyTorch, as :func:`~nerf_lightning.splats.rasterize.rasterize` does.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+
+from nerf_lightning.splats.projection import MIN_ALPHA, Projection
+from nerf_lightning.splats.rasterize import pixel_boxes
+from nerf_lightning.splats.rasterize_dense import MAX_ALPHA, MIN_TRANSMITTANCE
+
+# a tile's side in pixels (3DGS's and gsplat's 16)
+TILE = 16
+# the per-pair work of a tile is uneven (a tile of sky has none): tiles are handed to threads a few at a time
+_CHUNK = 1
+
+
+@numba.njit(cache=True)
+def bin_footprints(order: np.ndarray, boxes: np.ndarray, tile: int, tiles_x: int, tiles_y: int):
+    """Footprints listed tile by tile, nearest first.
+
+    ``order`` (M,) int64 the footprints nearest first; ``boxes`` (M, 4) int64 first and last column, first and last
+    row of each footprint's pixels (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`). Returns ``offsets``
+    (T + 1,) int64 (tile t's footprints are ``entries[offsets[t]:offsets[t + 1]]``), ``entries`` (E,) int32
+    footprint indices, and ``slot_offsets`` (M + 1,) int64 and ``slots`` (E,) int64: footprint f's positions in
+    ``entries`` are ``slots[slot_offsets[f]:slot_offsets[f + 1]]``, in tile order."""
+    n = boxes.shape[0]
+    n_tiles = tiles_x * tiles_y
+    offsets = np.zeros(n_tiles + 1, np.int64)
+    slot_offsets = np.zeros(n + 1, np.int64)
+    for f in range(n):
+        c0, c1, r0, r1 = boxes[f, 0], boxes[f, 1], boxes[f, 2], boxes[f, 3]
+        if c1 < c0 or r1 < r0:
+            continue
+        slot_offsets[f + 1] = (c1 // tile - c0 // tile + 1) * (r1 // tile - r0 // tile + 1)
+        for ty in range(r0 // tile, r1 // tile + 1):
+            for tx in range(c0 // tile, c1 // tile + 1):
+                offsets[ty * tiles_x + tx + 1] += 1
+    for t in range(n_tiles):
+        offsets[t + 1] += offsets[t]
+    for f in range(n):
+        slot_offsets[f + 1] += slot_offsets[f]
+    entries = np.empty(offsets[n_tiles], np.int32)
+    slots = np.empty(offsets[n_tiles], np.int64)
+    cursor = offsets[:n_tiles].copy()
+    for i in range(n):
+        f = order[i]
+        c0, c1, r0, r1 = boxes[f, 0], boxes[f, 1], boxes[f, 2], boxes[f, 3]
+        if c1 < c0 or r1 < r0:
+            continue
+        k = slot_offsets[f]
+        for ty in range(r0 // tile, r1 // tile + 1):
+            for tx in range(c0 // tile, c1 // tile + 1):
+                t = ty * tiles_x + tx
+                entries[cursor[t]] = f
+                slots[k] = cursor[t]
+                cursor[t] += 1
+                k += 1
+    return offsets, entries, slot_offsets, slots
+
+
+@numba.njit(parallel=True, cache=True)
+def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, features, height, width, tile, tiles_x,
+                    shaded, accumulation, transmittance, stop):
+    """Composite every pixel front to back. Inputs: the binning (:func:`bin_footprints`), ``boxes`` (M, 4),
+    ``means2d`` (M, 2), ``conics`` (M, 3), ``opacities`` (M,), ``features`` (M, F). Written: ``shaded`` (H * W, F)
+    the weighted sums of the features, ``accumulation`` (H * W,) the sum of the weights, ``transmittance`` (H * W,)
+    float64 what is left after the last footprint drawn, ``stop`` (H * W,) int64 the tile-list position at which
+    the pixel was done (its tile's end where it never was)."""
+    n_features = features.shape[1]
+    n_tiles = offsets.shape[0] - 1
+    for t in numba.prange(n_tiles):
+        y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
+        y1, x1 = min(y0 + tile, height), min(x0 + tile, width)
+        tile_width = x1 - x0
+        n_pixels = (y1 - y0) * tile_width
+        left = np.ones(n_pixels, np.float64)  # transmittance
+        sums = np.zeros((n_pixels, n_features), np.float64)
+        weight_sums = np.zeros(n_pixels, np.float64)
+        ends = np.full(n_pixels, offsets[t + 1], np.int64)
+        active = n_pixels
+        for k in range(offsets[t], offsets[t + 1]):
+            if active == 0:
+                break
+            f = entries[k]
+            mx, my = np.float64(means2d[f, 0]), np.float64(means2d[f, 1])
+            a, b, c = np.float64(conics[f, 0]), np.float64(conics[f, 1]), np.float64(conics[f, 2])
+            o = np.float64(opacities[f])
+            for row in range(max(boxes[f, 2], y0), min(boxes[f, 3], y1 - 1) + 1):
+                dy = row + 0.5 - my
+                for column in range(max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1) + 1):
+                    p = (row - y0) * tile_width + column - x0
+                    if ends[p] != offsets[t + 1]:
+                        continue
+                    dx = column + 0.5 - mx
+                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < 0.0:
+                        continue
+                    alpha = min(MAX_ALPHA, o * math.exp(-sigma))
+                    if alpha < MIN_ALPHA:
+                        continue
+                    after = left[p] * (1.0 - alpha)
+                    if after <= MIN_TRANSMITTANCE:
+                        ends[p] = k
+                        active -= 1
+                        continue
+                    weight = alpha * left[p]
+                    for i in range(n_features):
+                        sums[p, i] += weight * features[f, i]
+                    weight_sums[p] += weight
+                    left[p] = after
+        for p in range(n_pixels):
+            pixel = (y0 + p // tile_width) * width + x0 + p % tile_width
+            for i in range(n_features):
+                shaded[pixel, i] = sums[p, i]
+            accumulation[pixel] = weight_sums[p]
+            transmittance[pixel] = left[p]
+            stop[pixel] = ends[p]
+
+
+@numba.njit(parallel=True, cache=True)
+def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities, features, height, width, tile, tiles_x,
+                             transmittance, stop, grad_shaded, grad_accumulation, slot_grads):
+    """The gradients of :func:`composite_tiles`, back to front. ``grad_shaded`` (H * W, F) and ``grad_accumulation``
+    (H * W,) are the loss's gradients of its outputs; written: ``slot_grads`` (E, 6 + F), for each tile-list entry
+    its footprint's gradient from that tile's pixels: d means2d (2), d conics (3), d opacity, d features (F)."""
+    n_features = features.shape[1]
+    n_tiles = offsets.shape[0] - 1
+    for t in numba.prange(n_tiles):
+        y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
+        y1, x1 = min(y0 + tile, height), min(x0 + tile, width)
+        tile_width = x1 - x0
+        n_pixels = (y1 - y0) * tile_width
+        left = np.empty(n_pixels, np.float64)
+        behind = np.zeros(n_pixels, np.float64)  # sum over the footprints behind of w_j g_j
+        ends = np.empty(n_pixels, np.int64)
+        for p in range(n_pixels):
+            pixel = (y0 + p // tile_width) * width + x0 + p % tile_width
+            left[p], ends[p] = transmittance[pixel], stop[pixel]
+        grads = np.empty(6 + n_features, np.float64)
+        for k in range(offsets[t + 1] - 1, offsets[t] - 1, -1):
+            f = entries[k]
+            mx, my = np.float64(means2d[f, 0]), np.float64(means2d[f, 1])
+            a, b, c = np.float64(conics[f, 0]), np.float64(conics[f, 1]), np.float64(conics[f, 2])
+            o = np.float64(opacities[f])
+            grads[:] = 0.0
+            for row in range(max(boxes[f, 2], y0), min(boxes[f, 3], y1 - 1) + 1):
+                dy = row + 0.5 - my
+                for column in range(max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1) + 1):
+                    p = (row - y0) * tile_width + column - x0
+                    if k >= ends[p]:
+                        continue
+                    dx = column + 0.5 - mx
+                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < 0.0:
+                        continue
+                    fade = math.exp(-sigma)
+                    alpha = min(MAX_ALPHA, o * fade)
+                    if alpha < MIN_ALPHA:
+                        continue
+                    pixel = row * width + column
+                    before = left[p] / (1.0 - alpha)
+                    weight = alpha * before
+                    grad_weight = grad_accumulation[pixel]
+                    for i in range(n_features):
+                        grad_weight += grad_shaded[pixel, i] * features[f, i]
+                        grads[6 + i] += weight * grad_shaded[pixel, i]
+                    grad_alpha = before * grad_weight - behind[p] / (1.0 - alpha)
+                    behind[p] += weight * grad_weight
+                    left[p] = before
+                    if o * fade <= MAX_ALPHA:  # the clamp passes no gradient
+                        grads[5] += fade * grad_alpha
+                        grad_sigma = -alpha * grad_alpha
+                        grads[0] -= grad_sigma * (a * dx + b * dy)
+                        grads[1] -= grad_sigma * (c * dy + b * dx)
+                        grads[2] += grad_sigma * 0.5 * dx * dx
+                        grads[3] += grad_sigma * dx * dy
+                        grads[4] += grad_sigma * 0.5 * dy * dy
+            for i in range(6 + n_features):
+                slot_grads[k, i] = grads[i]
+
+
+@numba.njit(parallel=True, cache=True)
+def sum_slots(slot_offsets, slots, slot_grads, out):
+    """``out`` (M, G): each footprint's gradient, the sum of its tile-list slots (``slot_grads`` (E, G)) in tile order."""
+    for f in numba.prange(out.shape[0]):
+        for j in range(slot_offsets[f], slot_offsets[f + 1]):
+            for i in range(out.shape[1]):
+                out[f, i] += slot_grads[slots[j], i]
+
+
+def _numpy(tensor: torch.Tensor) -> np.ndarray:
+    return tensor.detach().contiguous().numpy()
+
+
+class TileRasterize(torch.autograd.Function):
+    """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, F) features -> (H, W, F) weighted feature sums and (H, W)
+    accumulation, differentiable in the four inputs; on CPU tensors. ``order`` (M,) is the footprints nearest first,
+    ``boxes`` (M, 4) their pixel boxes."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, order, boxes, height: int, width: int, tile: int = TILE):
+        tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+        arrays = tuple(_numpy(x) for x in (means2d, conics, opacities, features))
+        box_array = _numpy(boxes)
+        offsets, entries, slot_offsets, slots = bin_footprints(_numpy(order), box_array, tile, tiles_x, tiles_y)
+        n_pixels, dtype = height * width, arrays[3].dtype
+        shaded = np.empty((n_pixels, arrays[3].shape[1]), dtype)
+        accumulation = np.empty(n_pixels, dtype)
+        transmittance = np.empty(n_pixels, np.float64)
+        stop = np.empty(n_pixels, np.int64)
+        composite_tiles(offsets, entries, box_array, *arrays, height, width, tile, tiles_x, shaded, accumulation, transmittance, stop)
+        ctx.saved = (offsets, entries, slot_offsets, slots, box_array, arrays, transmittance, stop, height, width, tile, tiles_x)
+        return (torch.from_numpy(shaded).reshape(height, width, -1), torch.from_numpy(accumulation).reshape(height, width))
+
+    @staticmethod
+    def backward(ctx, grad_shaded, grad_accumulation):
+        offsets, entries, slot_offsets, slots, box_array, arrays, transmittance, stop, height, width, tile, tiles_x = ctx.saved
+        n_features, dtype = arrays[3].shape[1], arrays[3].dtype
+        grad_shaded = np.zeros((height * width, n_features), dtype) if grad_shaded is None else \
+            _numpy(grad_shaded).astype(dtype, copy=False).reshape(-1, n_features)
+        grad_accumulation = np.zeros(height * width, dtype) if grad_accumulation is None else \
+            _numpy(grad_accumulation).astype(dtype, copy=False).reshape(-1)
+        slot_grads = np.empty((len(entries), 6 + n_features), np.float64)
+        composite_tiles_backward(offsets, entries, box_array, *arrays, height, width, tile, tiles_x, transmittance, stop,
+                                 grad_shaded, grad_accumulation, slot_grads)
+        grads = np.zeros((len(arrays[2]), 6 + n_features), np.float64)
+        sum_slots(slot_offsets, slots, slot_grads, grads)
+        grads = torch.from_numpy(grads.astype(dtype))
+        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None, None, None
+
+
+def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, width: int,
+                    background: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
+    something is drawn), accumulation (H, W); ``background`` (3,). CPU tensors; differentiable in the footprints and
+    colours (and the background)."""
+    order = torch.sort(projection.depths.detach(), stable=True).indices
+    boxes = pixel_boxes(projection, height, width)
+    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z
+    shaded, accumulation = TileRasterize.apply(projection.means2d, projection.conics, projection.opacities, features,
+                                               order, boxes, height, width)
+    rgb = shaded[..., :3] + (1.0 - accumulation)[..., None] * background
+    depth = shaded[..., 3] / accumulation.clamp(min=1e-10)
+    return {"rgb": rgb, "depth": depth, "accumulation": accumulation}

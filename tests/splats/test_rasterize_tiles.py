@@ -1,0 +1,181 @@
+"""The CPU tile rasteriser (numba) against the dense reference, in values and gradients, on random scenes, an empty
+view, footprints across tile and image borders, pixels that stop early, crowded tiles, antialiasing, masks and
+patches; its gradients the same bit for bit on a second run; the fallback to PyTorch without numba."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+from nerf_lightning.splats import rasterizers
+from nerf_lightning.splats.projection import Projection, project
+from nerf_lightning.splats.rasterize import rasterize
+from nerf_lightning.splats.rasterize_dense import rasterize_dense
+from nerf_lightning.splats.rasterize_tiles import TILE, rasterize_tiles
+from tests.splats.test_rasterize import camera, gaussians
+
+BACKGROUND = torch.tensor([0.2, 0.4, 0.9])
+
+
+def drawn(g: dict[str, torch.Tensor], rasteriser, height: int, width: int, antialiased: bool = False,
+          K: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    K0, c2w = camera(height, width)
+    projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]),
+                         K0 if K is None else K, c2w, height, width, antialiased)
+    return rasteriser(projection, g["colours"][projection.ids], height, width, BACKGROUND)
+
+
+def assert_equal_to_dense(g: dict[str, torch.Tensor], height: int, width: int, antialiased: bool = False,
+                          mask: torch.Tensor | None = None, K: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Values and the gradients of one loss over rgb, accumulation and depth, tiles against dense, to 1e-5."""
+    tiles, dense = drawn(g, rasterize_tiles, height, width, antialiased, K), drawn(g, rasterize_dense, height, width, antialiased, K)
+    for key in ("rgb", "accumulation"):
+        torch.testing.assert_close(tiles[key], dense[key], atol=1e-5, rtol=1e-5)
+    covered = dense["accumulation"] > 1e-3
+    torch.testing.assert_close(tiles["depth"][covered], dense["depth"][covered], atol=1e-4, rtol=1e-5)
+    weights = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(7))
+    target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(8))
+
+    def gradients(out):
+        rgb = out["rgb"] if mask is None else torch.where(mask[..., None], out["rgb"], target)  # data.masks=exclude's rule
+        loss = (rgb * weights).sum() + out["accumulation"].sum() + (out["depth"] * covered).sum() * 0.1
+        return torch.autograd.grad(loss, list(g.values()))
+
+    for name, a, b in zip(g, gradients(tiles), gradients(dense)):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4, msg=f"gradient with respect to {name}")
+    return tiles
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_the_tile_rasteriser_equals_the_dense_reference_in_values_and_gradients(seed, antialiased):
+    out = assert_equal_to_dense(gaussians(seed=seed), 20, 24, antialiased)
+    assert (out["accumulation"] > 1e-3).float().mean() > 0.3, "the scene should cover a good part of the image"
+
+
+def test_footprints_across_tile_and_image_borders():
+    # an image of 2 x 3 tiles and a bit (not a multiple of the tile), large Gaussians reaching over every border
+    height, width = 2 * TILE + 5, 3 * TILE + 7
+    g = gaussians(n=80, seed=4)
+    with torch.no_grad():
+        g["log_scales"] += 1.0
+        g["means"][:, :2] *= 1.5
+    out = assert_equal_to_dense(g, height, width)
+    assert (out["accumulation"][-1] > 1e-3).any() and (out["accumulation"][:, -1] > 1e-3).any()
+
+
+def test_an_empty_view_shows_the_background_and_passes_no_gradient():
+    g = gaussians(n=10, seed=5)
+    with torch.no_grad():
+        g["means"][:, 2] = -10.0  # all behind the camera
+    out = drawn(g, rasterize_tiles, 20, 24)
+    torch.testing.assert_close(out["rgb"], BACKGROUND.expand(20, 24, 3))
+    assert out["accumulation"].abs().max() == 0
+    out["rgb"].sum().backward()
+    assert all(value.grad is None or value.grad.abs().max() == 0 for value in g.values())
+
+
+def stack(n: int, opacity: float, spread: float = 0.0, seed: int = 0) -> Projection:
+    """n round footprints of ``opacity`` about the middle of a 20 x 24 view, nearest first by index."""
+    generator = torch.Generator().manual_seed(seed)
+    means2d = (torch.tensor([12.0, 10.0]) + spread * torch.randn(n, 2, generator=generator)).requires_grad_()
+    conics = torch.tensor([0.02, 0.0, 0.02]).repeat(n, 1).requires_grad_()
+    opacities = torch.full((n,), opacity).requires_grad_()
+    depths = torch.linspace(1.0, 2.0, n).requires_grad_()
+    extents = torch.full((n, 2), 20.0)
+    return Projection(torch.arange(n), means2d, conics, opacities, depths, extents)
+
+
+def assert_projection_gradients_equal(projection: Projection, colours: torch.Tensor, height: int = 20, width: int = 24) -> dict:
+    out = {}
+    for name, rasteriser in (("tiles", rasterize_tiles), ("dense", rasterize_dense)):
+        drawn_out = rasteriser(projection, colours, height, width, BACKGROUND)
+        loss = drawn_out["rgb"].sum() + 0.5 * drawn_out["accumulation"].sum() + 0.1 * drawn_out["depth"].sum()
+        inputs = [projection.means2d, projection.conics, projection.opacities, projection.depths, colours]
+        out[name] = (drawn_out, torch.autograd.grad(loss, inputs))
+    for key in ("rgb", "accumulation", "depth"):
+        torch.testing.assert_close(out["tiles"][0][key], out["dense"][0][key], atol=1e-5, rtol=1e-5)
+    for a, b in zip(out["tiles"][1], out["dense"][1]):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+    return out["tiles"][0]
+
+
+def test_a_pixel_stops_at_the_transmittance_floor_and_the_rest_is_not_drawn():
+    # 40 footprints of opacity 0.5: 2^-13 < 1e-4, so the middle pixels stop after 13 and the later ones do nothing
+    colours = torch.rand(40, 3, generator=torch.Generator().manual_seed(1)).requires_grad_()
+    out = assert_projection_gradients_equal(stack(40, 0.5), colours)
+    assert out["accumulation"][10, 12] > 1 - 2e-4
+    # alphas at the clamp (0.999) too: an opacity above it passes no gradient through the clamp
+    assert_projection_gradients_equal(stack(5, 0.9995, spread=3.0), torch.rand(5, 3).requires_grad_())
+
+
+def test_a_tile_with_more_footprints_than_a_block_holds():
+    # 700 faint footprints over one tile (a GPU block holds 256): every one is composited, none is lost
+    colours = torch.rand(700, 3, generator=torch.Generator().manual_seed(2)).requires_grad_()
+    assert_projection_gradients_equal(stack(700, 0.01, spread=2.0, seed=3), colours)
+
+
+def test_a_masked_loss_and_a_patch_get_the_reference_gradients():
+    height, width = 20, 24
+    mask = torch.rand(height, width, generator=torch.Generator().manual_seed(3)) > 0.4
+    assert_equal_to_dense(gaussians(seed=6), height, width, mask=mask)
+    # a patch: the view's camera with its principal point moved to the patch's corner, drawn at the patch's size
+    K, _ = camera(40, 48)
+    patch = K.clone()
+    patch[0, 2] -= 13
+    patch[1, 2] -= 7
+    assert_equal_to_dense(gaussians(seed=7), height, width, K=patch)
+
+
+def test_the_same_input_gives_the_same_gradients_bit_for_bit():
+    g = gaussians(n=300, seed=8)
+    grads = []
+    for _ in range(2):
+        out = drawn(g, rasterize_tiles, 40, 48)
+        grads.append(torch.autograd.grad(out["rgb"].square().sum() + out["depth"].sum(), list(g.values())))
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
+
+
+def test_float64_inputs_are_drawn_in_float64():
+    g = {key: value.detach().double().requires_grad_() for key, value in gaussians(seed=9).items()}
+    K, c2w = camera()
+    projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K.double(), c2w.double(), 20, 24)
+    out = rasterize_tiles(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
+    assert out["rgb"].dtype == torch.float64
+    torch.testing.assert_close(out["rgb"], rasterize(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())["rgb"])
+
+
+def test_auto_takes_tiles_on_a_cpu_and_pytorch_elsewhere():
+    assert rasterizers.choose_rasterizer("cpu") == "tiles"
+    assert rasterizers.choose_rasterizer("cuda") == rasterizers.choose_rasterizer("mps") == "pairs"
+    assert rasterizers.choose_rasterizer("cpu", "pairs") == "pairs"
+    with pytest.raises(ValueError, match="model.rasterizer must be one of auto, tiles, pairs"):
+        rasterizers.choose_rasterizer("cpu", "numba")
+
+
+def test_without_numba_one_warning_then_the_pytorch_rasteriser(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_numba(name, *args, **kwargs):
+        if name == "numba" or name.startswith("numba."):
+            raise ImportError("No module named 'numba'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(rasterizers, "_tiles_ready", None)
+    monkeypatch.setattr(rasterizers, "_tiles", None)
+    monkeypatch.delitem(__import__("sys").modules, "nerf_lightning.splats.rasterize_tiles")
+    monkeypatch.delattr(__import__("nerf_lightning.splats").splats, "rasterize_tiles")
+    monkeypatch.setattr(builtins, "__import__", no_numba)
+    g = gaussians(seed=10)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = drawn(g, lambda *args: rasterizers.rasterize_view(*args), 20, 24)
+        drawn(g, lambda *args: rasterizers.rasterize_view(*args), 20, 24)
+    said = [w for w in caught if "tile rasteriser is unavailable" in str(w.message)]
+    assert len(said) == 1 and "pip install numba" in str(said[0].message)
+    torch.testing.assert_close(out["rgb"], drawn(g, rasterize_dense, 20, 24)["rgb"], atol=1e-5, rtol=1e-5)

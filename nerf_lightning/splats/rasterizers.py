@@ -31,12 +31,14 @@ def tiles_available() -> bool:
         try:
             import nerf_lightning.splats.rasterize_tiles as rasterize_tiles
 
-            means2d = torch.tensor([[2.0, 2.0], [3.0, 1.5]], requires_grad=True)
-            conics = torch.tensor([[0.5, 0.1, 0.5], [1.0, 0.0, 1.0]])
-            probe = Projection(torch.arange(2), means2d, conics, torch.tensor([0.9, 0.5]), torch.tensor([1.0, 2.0]),
-                               torch.full((2, 2), 3.0))
-            out = rasterize_tiles.rasterize_tiles(probe, torch.rand(2, 3), 4, 5, torch.zeros(3))
-            out["rgb"].sum().backward()
+            # with gradients even where the first view is drawn under no_grad or inference_mode (render_view, nerf-render)
+            with torch.inference_mode(False), torch.enable_grad():
+                means2d = torch.tensor([[2.0, 2.0], [3.0, 1.5]], requires_grad=True)
+                conics = torch.tensor([[0.5, 0.1, 0.5], [1.0, 0.0, 1.0]])
+                probe = Projection(torch.arange(2), means2d, conics, torch.tensor([0.9, 0.5]), torch.tensor([1.0, 2.0]),
+                                   torch.full((2, 2), 3.0))
+                out = rasterize_tiles.rasterize_tiles(probe, torch.rand(2, 3), 4, 5, torch.zeros(3))
+                out["rgb"].sum().backward()
             _tiles, _tiles_ready = rasterize_tiles, True
         except Exception as error:  # ImportError without numba; numba's errors where it cannot compile
             warnings.warn(f"the CPU tile rasteriser is unavailable ({type(error).__name__}: {error}); splats are drawn by "

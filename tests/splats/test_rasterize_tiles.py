@@ -156,6 +156,21 @@ def test_auto_takes_tiles_on_a_cpu_and_pytorch_elsewhere():
         rasterizers.choose_rasterizer("cpu", "numba")
 
 
+@pytest.mark.parametrize("mode", [torch.no_grad, torch.inference_mode])
+def test_auto_takes_tiles_where_the_first_view_is_drawn_without_gradients(mode, monkeypatch):
+    """nerf-render, nerf-eval and the viewer draw their first view under no_grad (render_view) or inference_mode: the
+    probe's backward pass must not fail there and send the whole process to the PyTorch rasteriser."""
+    monkeypatch.setattr(rasterizers, "_tiles_ready", None)
+    monkeypatch.setattr(rasterizers, "_tiles", None)
+    g = {key: value.detach() for key, value in gaussians(seed=11).items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with mode():
+            assert rasterizers.choose_rasterizer("cpu") == "tiles"
+            out = drawn(g, lambda *args: rasterizers.rasterize_view(*args), 20, 24)
+    torch.testing.assert_close(out["rgb"], drawn(g, rasterize_dense, 20, 24)["rgb"], atol=1e-5, rtol=1e-5)
+
+
 def test_without_numba_one_warning_then_the_pytorch_rasteriser(monkeypatch):
     import builtins
 

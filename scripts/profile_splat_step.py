@@ -88,7 +88,9 @@ class StageProfiler(L.Callback):
             stages["forward_rest"] = forward - sum(stages[key] for key in ("project", "sh", "rasterize", "loss"))
             stages["backward"] = mean("forward", "backward")
             stages["adam"] = mean("optimizer", "end")
-            self.results[phase[0]] = {"step_s": mean("start", "end"), "stages_s": stages, "gaussians": len(pl_module.gaussians)}
+            ops = sorted(self._profile.key_averages(), key=lambda event: -event.self_cpu_time_total)[:15]
+            self.results[phase[0]] = {"step_s": mean("start", "end"), "stages_s": stages, "gaussians": len(pl_module.gaussians),
+                                      "top_ops_self_s": {event.key: event.self_cpu_time_total / 1e6 / self.steps for event in ops}}
 
 
 def main() -> None:

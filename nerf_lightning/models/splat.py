@@ -17,9 +17,12 @@ import torch
 from torch.profiler import record_function
 
 from nerf_lightning.devices import memory_of
+from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import SceneModule
+from nerf_lightning.per_view import PerViewTable
+from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS
@@ -35,7 +38,8 @@ class SplatModule(SceneModule):
     """Trains Gaussian splats on whole training views or patches (``data=views``).
 
     Under the model contract it renders a camera (:meth:`render_view`); it has no density field to mesh.
-    Logs ``train/loss``, ``train/psnr``, ``train/gaussians`` every step and ``val/psnr``, ``val/ssim`` (and
+    Logs ``train/loss``, ``train/psnr``, ``train/gaussians`` every step (and the per-view tables' penalties,
+    ``train/loss_appearance`` and ``train/loss_camera_*``, where they are on) and ``val/psnr``, ``val/ssim`` (and
     ``val/depth_error`` where the scene has true depth) over whole held-out views.
 
     Args:
@@ -60,6 +64,14 @@ class SplatModule(SceneModule):
         max_pairs: (Gaussian, pixel) pairs drawn at once by the ``pairs`` rasteriser
             (:mod:`~nerf_lightning.splats.rasterize`): the memory a view takes, about 100 bytes a pair with gradients.
         random_count, random_start, random_near, random_extent: the random start of a capture without sparse points.
+        appearance: a learnt colour transform for each training view
+            (:class:`~nerf_lightning.splats.appearance.ViewColourAffine`: the Gaussians' colours in a training view's
+            render, not the background, through its affine map before the loss; its own learning rate, its penalty
+            logged as ``train/loss_appearance``); None: none. Held-out views are drawn without it (the identity).
+        camera_refinement: learn a pose correction for each training view
+            (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`: the training view's c2w corrected before
+            projecting; its own learning rate, its penalties logged as ``train/loss_camera_*``); None keeps the poses
+            as loaded. Held-out views keep their loaded poses.
     """
 
     kind = "splats"
@@ -68,8 +80,9 @@ class SplatModule(SceneModule):
                  strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
                  rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
-                 random_extent: float = 1.3) -> None:
+                 random_extent: float = 1.3, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
         super().__init__(optimizer, scheduler)
+        self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
         if missing:
             raise ValueError(f"model.learning_rates needs a rate for {', '.join(sorted(missing))}")
@@ -99,6 +112,8 @@ class SplatModule(SceneModule):
         if space.ndc is not None or space.contraction is not None:
             raise ValueError("Gaussian splats live in the scene's own world: data.ndc and data.contract must be false for model=splat")
         self.use_space(space)
+        for table in self.per_view_tables().values():  # sized before the optimiser is built and a checkpoint restored
+            table.resize(len(datamodule.scene.train))
         self.view_size = (datamodule.scene.train.height, datamodule.scene.train.width)
         centres = datamodule.scene.train.c2w[:, :3, 3]
         self.scene_scale.fill_(1.1 * float((centres - centres.mean(dim=0)).norm(dim=-1).max()))
@@ -151,7 +166,26 @@ class SplatModule(SceneModule):
         return [
             {"name": "means", "params": [g.means], "lr": rates["means"] * float(self.scene_scale), "schedule": lambda step: decay**step},
             *({"name": name, "params": [getattr(g, name)], "lr": rates[name]} for name in PARAMETERS if name != "means"),
+            *({"name": name, "params": [table.rows], "lr": table.lr} for name, table in self.per_view_tables().items()),
         ]
+
+    def per_view_tables(self) -> dict[str, PerViewTable]:
+        """What is learnt a training view, by attribute name: ``appearance`` and ``camera_refinement``, those that are on."""
+        return {name: table for name in ("appearance", "camera_refinement") if (table := getattr(self, name)) is not None}
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """A checkpoint without a per-view table this model has (trained before the tables, or without them) loads
+        with the table as it is (no correction); resuming its run with the table is refused by name (its optimiser
+        has no group for it)."""
+        state = checkpoint.get("state_dict")
+        missing = [name for name in self.per_view_tables() if state is not None and f"{name}.rows" not in state]
+        if missing and self._trainer is not None and self._trainer.state.fn == "fit" and checkpoint.get("optimizer_states"):
+            keys = ", ".join(f"model/{name}" for name in missing)
+            raise ValueError(f"this checkpoint was trained without {keys}: a resumed run cannot add it (its optimiser has no group "
+                             f"for it); resume without it, or start a new run with it")
+        for name in missing:
+            state[f"{name}.rows"] = getattr(self, name).rows.detach().clone()
+        super().on_load_checkpoint(checkpoint)
 
     # -- drawing a camera ------------------------------------------------------------------------------------
 
@@ -195,9 +229,11 @@ class SplatModule(SceneModule):
     # -- training and validation ----------------------------------------------------------------------------------
 
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
-        image = batch["image"]
+        image, c2w, camera_index = batch["image"], batch["c2w"], batch.get("camera_index")
         height, width = image.shape[:2]
-        out, projection = self.draw(batch["K"], batch["c2w"], height, width)
+        if self.camera_refinement is not None and camera_index is not None:
+            c2w = self.camera_refinement.corrected_c2w(c2w[None].to(self.device, torch.float32), camera_index.reshape(1))[0]
+        out, projection = self.draw(batch["K"], c2w, height, width)
         if projection.means2d.requires_grad:
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
         # the strategy reads gradients as of a whole view: a patch's loss, a mean over fewer pixels, gives each of its
@@ -205,6 +241,8 @@ class SplatModule(SceneModule):
         full_height, full_width = self.view_size or (height, width)
         self._drawn = (projection, full_width, full_height, height * width / (full_height * full_width))
         rgb = out["rgb"]
+        if self.appearance is not None and camera_index is not None:  # the view's colour transform, the background as it is
+            rgb = self.appearance(rgb, camera_index.reshape(()), out["accumulation"], self.space.background)
         mask = batch.get("mask")  # data.masks=exclude: no gradient reaches a pixel outside; the loss a mean over the mask
         if mask is not None:
             rgb = torch.where(mask[..., None], rgb, image)
@@ -215,6 +253,10 @@ class SplatModule(SceneModule):
         regulariser = None if self.strategy is None else self.strategy.loss(self.gaussians)  # MCMC's
         if regulariser is not None:
             loss = loss + regulariser
+        for table in self.per_view_tables().values():
+            for name, penalty in table.penalties().items():
+                loss = loss + penalty
+                self.log(f"train/loss_{name}", penalty.detach(), on_step=True, on_epoch=False)
         self.log("train/loss", loss, on_step=True, on_epoch=False)
         self.log("train/psnr", mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)), on_step=True)
         self.log("train/gaussians", float(len(self.gaussians)), on_step=True)

@@ -60,6 +60,14 @@ def synchronize(device: torch.device) -> None:
         torch.mps.synchronize()
 
 
+def peak_memory_gb(device: torch.device) -> float | None:
+    """The most GPU memory (GiB) torch has held allocated on a CUDA ``device`` in this process
+    (``torch.cuda.max_memory_allocated``), or None on any other device."""
+    if device.type != "cuda":
+        return None
+    return round(torch.cuda.max_memory_allocated(device) / 2**30, 3)
+
+
 def memory_of(device: torch.device) -> int | None:
     """The bytes of memory ``device`` has: a GPU's own, the machine's RAM for the CPU (and for an Apple GPU, which
     shares it); None where it cannot be told."""

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nerf_lightning.callbacks import RunConfigInCheckpoint, StepProgressBar
 from nerf_lightning.checkpoints import checkpoint_globals, read_checkpoint
-from nerf_lightning.devices import enable_tf32
+from nerf_lightning.devices import enable_tf32, peak_memory_gb
 from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_json
 
@@ -54,6 +54,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
     metrics: dict[str, Any] = {key: float(value) for key, value in trainer.callback_metrics.items()}
     metrics.update(step=int(trainer.global_step), wall_seconds=round(wall_seconds, 3))
+    peak = peak_memory_gb(trainer.strategy.root_device)
+    if peak is not None:  # on CUDA: the run's peak of allocated GPU memory (nerf-bench's results carry it)
+        metrics["peak_memory_gb"] = peak
     if trainer.is_global_zero:
         write_json(output_dir / "metrics.json", metrics)
     return metrics

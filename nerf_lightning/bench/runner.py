@@ -92,6 +92,20 @@ def eval_arguments(row: Row, checkpoint: Path, output_dir: Path) -> list[str]:
             *([f"max_views={row.eval_views}"] if row.eval_views else [])]
 
 
+def step_figures(metrics: dict[str, Any]) -> dict[str, Any]:
+    """What a run's last training step measured, from its metrics.json: samples a ray, rays and samples a step (a
+    radiance field), Gaussians (splats), and the peak GPU memory in GiB (CUDA); None where the run has no such figure."""
+    samples_per_ray, rays = metrics.get("train/samples_per_ray"), metrics.get("train/rays")
+    return {"samples_per_ray": samples_per_ray, "rays_per_step": rays,
+            "samples_per_step": round(samples_per_ray * rays) if samples_per_ray is not None and rays is not None else None,
+            "gaussians": metrics.get("train/gaussians"), "peak_memory_gb": metrics.get("peak_memory_gb")}
+
+
+def suite_argument(suite: Suite) -> str:
+    """The suite as ``nerf-bench run`` is given it: a shipped suite's name, else its file."""
+    return suite.name if shipped_suites().get(suite.name) == suite.path else str(suite.path)
+
+
 def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[str, Any]:
     """Train, then score every mark, of one row; returns its result (see the module docstring)."""
     from nerf_lightning.bench.machine import provenance
@@ -129,10 +143,10 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[
         "seconds_per_step": round(last["training_seconds"] / max(last["step"], 1), 4),
         "psnr": last["psnr"], "ssim": last["ssim"], "psnr_masked": last["psnr_masked"], "depth_error": last["depth_error"],
         "seconds_per_frame": last["seconds_per_frame"], "frame_size": last["frame_size"], "views": last["views"],
-        "samples_per_ray": metrics.get("train/samples_per_ray"), "curve": curve,
+        **step_figures(metrics), "curve": curve,
         "wall_seconds": round(time.perf_counter() - started, 1), "wall_seconds_training": round(wall_train, 1),
         "commands": {
-            "bench": shown("nerf-bench", ["run", suite.name, "--only", row.id, *(["--data-dir", str(data_dir)] if row.data else [])]),
+            "bench": shown("nerf-bench", ["run", suite_argument(suite), "--only", row.id, *(["--data-dir", str(data_dir)] if row.data else [])]),
             "train": shown("nerf-train", train_arguments(row, shown_run, shown_root)),
             "eval": shown("nerf-eval", eval_arguments(row, last_checkpoint, shown_run / "eval")),
         },

@@ -1,0 +1,179 @@
+#!/usr/bin/env bash
+# Issue 47's GPU check in one lease: scripts/gpu_check.sh OUT_DIR (the device's $OUT), from the repository root, with
+# the wheels in .whl/ and lego in .gpu_data/nerf_synthetic/lego (100 train views, 10 val views). In this order, each
+# step guarded (a failure goes on to the next) and cut to the time left before GPU_CHECK_DEADLINE seconds:
+#   a. setup: the wheels into /tmp/site, the project on PYTHONPATH; torch, CUDA and the GPU's name
+#   b. tests that touch devices, precision, compiling and the fixed-shape step (CUDA where there is one), bounded to
+#      GPU_CHECK_TEST_SECONDS, beside f (neither is timed)
+#   f. CountHostSyncs over a few hundred plain steps of fast_blender_gpu (past the grid's warm-up) -> OUT/syncs.json
+#   c. fast_blender_gpu as shipped, 3 minutes, scored at 1, 2, 3 on the 10 val views -> OUT/fast.json
+#   e. splat_blender_gpu, 3 minutes, scored at 1, 2, 3 -> OUT/splat.json
+#   d. fast_blender_gpu with model.compile=false, 1 minute (or what is left of the lease) -> OUT/nocompile.json
+# then OUT/summary.txt. OUT gets 8 files: log.txt (everything), summary.txt, junit.xml, syncs.json, fast.json,
+# splat.json, nocompile.json, smi.csv (nvidia-smi once a second).
+#   GPU_CHECK_STEPS="tests syncs fast splat nocompile"  the steps to run (a second call: GPU_CHECK_STEPS=nocompile)
+#   GPU_CHECK_DEADLINE=575  seconds from the start by which everything has ended (the run tool's limit is 600)
+#   GPU_CHECK_SMOKE=1  on a CPU: the project's .venv, no wheels, rows of seconds on tiny views (checks the plumbing)
+set -u
+OUT=${1:?usage: scripts/gpu_check.sh OUT_DIR}
+mkdir -p "$OUT" && OUT=$(cd "$OUT" && pwd)
+REPO=$(cd "$(dirname "$0")/.." && pwd)
+cd "$REPO" || exit 1
+export PYTHONUNBUFFERED=1
+START=$(date +%s)
+SMOKE=${GPU_CHECK_SMOKE:-0}
+STEPS=" ${GPU_CHECK_STEPS:-tests syncs fast splat nocompile} "
+DEADLINE=${GPU_CHECK_DEADLINE:-575}
+TEST_SECONDS=${GPU_CHECK_TEST_SECONDS:-60}
+WORK=${GPU_CHECK_WORK:-/tmp/gpu_check}
+DATA=.gpu_data
+SUITE=scripts/gpu_check.yaml
+LOG=$OUT/log.txt
+rm -rf "$WORK" && mkdir -p "$WORK"
+: >"$LOG"
+
+say() { echo "[gpu_check +$(($(date +%s) - START))s] $*" | tee -a "$LOG"; }
+left() { echo $((START + DEADLINE - $(date +%s))); }
+stamp() { date '+%Y/%m/%d %H:%M:%S'; }
+phase() { printf '%s\t%s\t%s\n' "$1" "$2" "$(stamp)" >>"$WORK/phases.txt"; }  # name, its start: ended now
+wants() { [[ "$STEPS" == *" $1 "* ]]; }
+cut() { say "CUT: $*"; echo "CUT: $*" >>"$WORK/cut.txt"; }
+
+# ---- a. setup -----------------------------------------------------------------------------------------------------
+if [ "$SMOKE" = 1 ]; then
+    PY=${GPU_CHECK_PYTHON:-$REPO/.venv/bin/python}
+    export PYTHONPATH=$REPO
+    say "smoke run on this machine's CPU with $PY: no wheels, tiny rows"
+else
+    PY=python3
+    say "installing $(ls .whl/*.whl | wc -l) wheels into /tmp/site"
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl 2>&1 | tee -a "$LOG"
+    # the project needs lightning>=2.6 (Trainer.fit(weights_only=...)): the carried 2.6.6 only where the machine's is older
+    if ! python3 -c "import lightning, sys; sys.exit(tuple(map(int, lightning.__version__.split('.')[:2])) < (2, 6))" 2>/dev/null; then
+        say "the machine's lightning is missing or older than 2.6: installing the carried $(ls .whl/fallback/)"
+        python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/fallback/lightning-*.whl 2>&1 | tee -a "$LOG"
+    fi
+    # the project from the working tree (python -m nerf_lightning.cli.train, ...: nerf-bench runs nerf-train and
+    # nerf-eval so where their console scripts are not installed), with its version for the results' provenance
+    export PYTHONPATH=/tmp/site:$REPO
+    version=$(sed -n 's/^version = "\(.*\)"/\1/p' pyproject.toml)
+    mkdir -p "/tmp/site/nerf_lightning-$version.dist-info"
+    printf 'Metadata-Version: 2.1\nName: nerf-lightning\nVersion: %s\n' "$version" >"/tmp/site/nerf_lightning-$version.dist-info/METADATA"
+fi
+{
+    echo "started $(date -u '+%Y-%m-%dT%H:%M:%SZ'); steps:$STEPS; deadline ${DEADLINE}s; $(nproc) CPU cores"
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 | sed 's/^/nvidia-smi: /'
+    $PY - <<'EOF' 2>&1
+import platform, sys
+import torch
+print(f"python {platform.python_version()} ({sys.executable}); torch {torch.__version__}, CUDA {torch.version.cuda}, "
+      f"cuda available {torch.cuda.is_available()}")
+if torch.cuda.is_available():
+    props = torch.cuda.get_device_properties(0)
+    print(f"GPU: {torch.cuda.get_device_name(0)}, {props.total_memory / 2**30:.1f} GiB, sm_{props.major}{props.minor}, "
+          f"{props.multi_processor_count} SMs")
+from importlib.metadata import version, PackageNotFoundError
+found = []
+for name in ("lightning", "kornia", "kornia_rs", "hydra-core", "omegaconf", "numpy", "triton", "pytest", "pytest-xdist", "nerf-lightning"):
+    try:
+        found.append(f"{name} {version(name)}")
+    except PackageNotFoundError:
+        found.append(f"{name} -")
+print("; ".join(found))
+import kornia, hydra, omegaconf, nerf_lightning.training, nerf_lightning.bench.runner  # noqa: F401 (the imports a run needs)
+print("imports ok")
+EOF
+} >"$WORK/env.txt" 2>&1
+cat "$WORK/env.txt" | tee -a "$LOG"
+SMI_PID=
+if command -v nvidia-smi >/dev/null; then
+    nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader,nounits -lms 1000 >"$OUT/smi.csv" 2>/dev/null &
+    SMI_PID=$!
+fi
+
+# ---- b. tests, f. host syncs (side by side: neither is timed) -------------------------------------------------------
+TESTS=(tests/models/test_compiled_step.py tests/rendering/test_fixed_shapes.py tests/test_devices_and_precision.py
+       tests/test_experiments.py tests/test_syncs.py tests/fields/test_hash_grid_fast.py tests/fields/test_hash_grid.py
+       tests/rendering/test_occupancy.py tests/data/test_batches.py tests/bench/test_callbacks.py tests/bench/test_figures.py)
+SYNC_STEPS=300 SYNC_WARMUP=256 SYNC_OVERRIDES=()
+if [ "$SMOKE" = 1 ]; then
+    TESTS=(tests/test_syncs.py tests/bench/test_figures.py)
+    SYNC_STEPS=8 SYNC_WARMUP=4 SYNC_OVERRIDES=(data.scene.downscale=8 model.field.encoding.log2_table_size=14 model.sampler.grid.resolution=32 model.sampler.capacity=16384
+        model.sampler.march_capacity=65536 data.batch_size=256 model.sampler.grid.warmup_steps=4 model.sampler.grid.update_every=2)
+fi
+echo "$SYNC_WARMUP" >"$WORK/sync_warmup.txt"
+run_tests() {
+    local workers=()
+    if [ "$SMOKE" != 1 ] && $PY -c "import xdist" 2>/dev/null; then workers=(-n "${GPU_CHECK_TEST_WORKERS:-6}"); fi
+    # SIGINT at the limit: pytest stops where it is and still writes junit.xml
+    # (inductor's compile workers: a few a test worker, not one a core each)
+    TORCHINDUCTOR_COMPILE_THREADS=4 timeout -s INT -k 20 "$TEST_SECONDS" $PY -m pytest "${workers[@]}" -q -rfE --tb=short --durations=15 \
+        --junitxml="$OUT/junit.xml" "${TESTS[@]}" >"$WORK/tests.log" 2>&1
+    echo "pytest exit $?" >>"$WORK/tests.log"
+}
+run_syncs() {
+    # as shipped (the preset's callbacks, progress bar, logger) but plain (a dispatch mode sees no op of a compiled
+    # graph), past the grid's 256 warm-up steps so that its refreshes after warm-up are counted too; a stop after
+    # training minutes so that syncs.json is written even if the steps are slow
+    timeout -k 10 $((TEST_SECONDS + 20)) $PY -m nerf_lightning.cli.train experiment=fast_blender_gpu \
+        data.root="$REPO/$DATA/nerf_synthetic/lego" model.compile=false trainer.max_steps=$SYNC_STEPS data.val_every=null \
+        "${SYNC_OVERRIDES[@]}" paths.output_dir="$WORK/syncs_run" \
+        "+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: $OUT/syncs.json}" \
+        "+callbacks.sync_stop={_target_: nerf_lightning.bench.callbacks.StopAtTrainingMinutes, minutes: $(awk "BEGIN{m = ($TEST_SECONDS - 25) / 60; print (m > 0.2) ? m : 0.2}")}" \
+        >"$WORK/syncs.log" 2>&1
+    echo "nerf-train (syncs) exit $?" >>"$WORK/syncs.log"
+}
+if wants tests || wants syncs; then
+    t0=$(stamp)
+    say "b/f: tests (${TEST_SECONDS}s at most: ${TESTS[*]}) beside the sync count ($SYNC_STEPS steps)"
+    pids=()
+    if wants tests; then run_tests & pids+=($!); fi
+    if wants syncs; then run_syncs & pids+=($!); fi
+    wait "${pids[@]}"
+    phase "tests+syncs" "$t0"
+    if wants tests; then say "---- tests"; tee -a "$LOG" <"$WORK/tests.log"; fi
+    if wants syncs; then say "---- syncs run (its last 40 lines)"; tr '\r' '\n' <"$WORK/syncs.log" | grep -v '^\s*$' | tail -n 40 | tee -a "$LOG"; fi
+fi
+
+# ---- c, e, d: nerf-bench rows -----------------------------------------------------------------------------------
+# bench NAME ROW_ID MINUTES SECONDS_BESIDES LEAST_MINUTES: the row trained MINUTES (fewer where the lease has less
+# left, none under LEAST_MINUTES); SECONDS_BESIDES is the row's time besides training (start, the marks' scoring)
+bench() {
+    local name=$1 id=$2 minutes=$3 besides=$4 least=$5 suite=$SUITE
+    local remaining; remaining=$(left)
+    local fit; fit=$(awk "BEGIN{m = ($remaining - $besides) / 60; m = (m > $minutes) ? $minutes : int(m * 20) / 20; print m}")
+    if [ "$SMOKE" = 1 ]; then fit=$(awk "BEGIN{print $minutes * 0.05}"); fi
+    if awk "BEGIN{exit !($fit < $least)}" && [ "$SMOKE" != 1 ]; then
+        cut "$name ($id) not run: ${remaining}s of the lease left, it needs $(awk "BEGIN{print $least * 60 + $besides}")s at least"
+        return
+    fi
+    if [ "$SMOKE" = 1 ] || awk "BEGIN{exit !($fit < $minutes)}"; then
+        suite=$WORK/suites/$name/gpu_check.yaml
+        local scaled
+        scaled=$($PY scripts/gpu_check_tools.py scale "$SUITE" "$id" "$fit" "$suite" $([ "$SMOKE" = 1 ] && echo --smoke)) || { cut "$name: could not write its suite"; return; }
+        [ "$SMOKE" = 1 ] || cut "$name cut to $fit of $minutes minutes by the lease (${remaining}s left): row $scaled"
+        id=$scaled
+    fi
+    local t0; t0=$(stamp)
+    say "---- $name: nerf-bench run $suite --only $id (${remaining}s of the lease left)"
+    local limit=$(($(left) - 5)); [ "$limit" -gt 10 ] || limit=10
+    timeout -k 10 "$limit" $PY -m nerf_lightning.bench.runner run "$suite" --only "$id" --data-dir "$DATA" \
+        --results "$WORK/results/$name" --report "$WORK/results/$name.md" --work "$WORK/bench/$name" 2>&1 | tee -a "$LOG"
+    say "$name: nerf-bench exit ${PIPESTATUS[0]}"
+    phase "$name" "$t0"
+    cp "$WORK/results/$name/"*.json "$OUT/$name.json" 2>/dev/null || say "$name: no results JSON"
+    for log in "$WORK/bench/$name"/*/*/train.log "$WORK/bench/$name"/*/*/eval/*/eval.log; do
+        [ -f "$log" ] || continue
+        say "$name: ${log#"$WORK"/} (last 25 lines)"
+        tr '\r' '\n' <"$log" | grep -v '^\s*$' | tail -n 25 | tee -a "$LOG"
+    done
+}
+wants fast && bench fast lego/fast_blender_gpu/3min/seed0 3 75 0.5
+wants splat && bench splat lego/splat_blender_gpu/3min/seed0 3 50 0.5
+wants nocompile && bench nocompile lego/fast_blender_gpu/1min/seed0 1 40 0.35
+
+# ---- summary --------------------------------------------------------------------------------------------------------
+[ -n "$SMI_PID" ] && kill "$SMI_PID" 2>/dev/null
+say "summary ($(left)s of the deadline left)"
+$PY scripts/gpu_check_tools.py summary "$OUT" "$WORK" 2>&1 | tee -a "$LOG"
+say "done"

@@ -1,0 +1,45 @@
+"""The figures a benchmark row carries beside its PSNR: samples and rays a step, Gaussians, the peak GPU memory (CUDA
+only, from nerf-train's metrics.json), and the suite as it was given to nerf-bench."""
+
+from __future__ import annotations
+
+import torch
+
+from nerf_lightning.bench.runner import step_figures, suite_argument
+from nerf_lightning.bench.suite import load_suite
+from nerf_lightning.devices import peak_memory_gb
+from tests.conftest import ROOT
+
+
+def test_the_peak_memory_is_cudas_and_none_elsewhere(monkeypatch):
+    assert peak_memory_gb(torch.device("cpu")) is None and peak_memory_gb(torch.device("mps")) is None
+    asked = []
+    monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda device: asked.append(device) or 3 * 2**30 + 2**29)
+    assert peak_memory_gb(torch.device("cuda", 0)) == 3.5 and asked == [torch.device("cuda", 0)]
+
+
+def test_a_rows_step_figures_come_from_the_runs_metrics():
+    radiance = {"train/samples_per_ray": 12.5, "train/rays": 20480.0, "train/psnr": 30.0, "peak_memory_gb": 7.25}
+    assert step_figures(radiance) == {"samples_per_ray": 12.5, "rays_per_step": 20480.0, "samples_per_step": 256000,
+                                      "gaussians": None, "peak_memory_gb": 7.25}
+    splats = {"train/gaussians": 250000.0, "train/psnr": 28.0}  # on a CPU: no peak memory
+    assert step_figures(splats) == {"samples_per_ray": None, "rays_per_step": None, "samples_per_step": None,
+                                    "gaussians": 250000.0, "peak_memory_gb": None}
+
+
+def test_a_suite_is_named_as_it_was_given(tmp_path):
+    assert suite_argument(load_suite("cpu-quick")) == "cpu-quick"
+    own = tmp_path / "mine.yaml"
+    own.write_text("device: cpu\nrows:\n  - {scene: procedural, preset: fast, minutes: 1}\n")
+    assert suite_argument(load_suite(str(own))) == str(own)
+
+
+def test_the_gpu_check_suite_loads_and_its_rows_compose():
+    from nerf_lightning.config import compose_config
+
+    suite = load_suite(str(ROOT / "scripts" / "gpu_check.yaml"))
+    assert [row.id for row in suite.rows] == ["lego/fast_blender_gpu/3min/seed0", "lego/fast_blender_gpu/1min/seed0",
+                                              "lego/splat_blender_gpu/3min/seed0"]
+    assert all(row.device == "cuda" for row in suite.rows) and suite.rows[0].marks == (1.0, 2.0, 3.0)
+    for row in suite.rows:
+        compose_config([f"experiment={row.preset}", f"data.root=/nowhere/{row.data}", *row.overrides])

@@ -25,7 +25,10 @@ from typing import Any
 import lightning as L
 from torch.profiler import ProfilerActivity, profile
 
+import torch
+
 from nerf_lightning.bench.micro import add_common_arguments, compose_preset, finish, seed_everything, start_result
+from nerf_lightning.splats.sh import spherical_harmonics
 from nerf_lightning.training import train
 
 INSTANCES: list[StageProfiler] = []
@@ -35,8 +38,8 @@ STAGES = ("splats.project", "splats.sh", "splats.rasterize", "splats.loss", "spl
 class StageProfiler(L.Callback):
     """After ``grow_steps`` steps, profiles ``steps`` steps with each rasteriser of ``rasterizers`` in turn."""
 
-    def __init__(self, grow_steps: int, steps: int, rasterizers: list[str]) -> None:
-        self.grow_steps, self.steps, self.rasterizers = grow_steps, steps, rasterizers
+    def __init__(self, grow_steps: int, steps: int, rasterizers: list[str], save_view: str | None = None) -> None:
+        self.grow_steps, self.steps, self.rasterizers, self.save_view = grow_steps, steps, rasterizers, save_view
         self.results: dict[str, Any] = {}
         self._profile: Any = None
         self._mark: dict[str, float] = {}
@@ -55,6 +58,7 @@ class StageProfiler(L.Callback):
         if phase is None:
             return
         pl_module.rasterizer = phase[0]
+        self._c2w, self._size = batch["c2w"].float(), tuple(batch["image"].shape[:2])
         if phase[1] == 1:
             self._profile = profile(activities=[ProfilerActivity.CPU])
             self._profile.__enter__()
@@ -63,6 +67,14 @@ class StageProfiler(L.Callback):
 
     def on_before_backward(self, trainer, pl_module, loss) -> None:
         self._mark["forward"] = time.perf_counter()
+        if self.save_view and trainer.global_step == self.grow_steps:  # the first profiled view, for bench_rasterize.py
+            projection, _, _, _ = pl_module._drawn
+            g, ids = pl_module.gaussians, projection.ids
+            directions = g.means.detach().index_select(0, ids) - self._c2w[:3, 3]
+            colours = spherical_harmonics(g.sh_degree, g.coefficients.detach().index_select(0, ids), directions)
+            torch.save({"projection": tuple(value.detach() for value in projection), "colours": colours,
+                        "height": self._size[0], "width": self._size[1], "background": pl_module.space.background.cpu(),
+                        "gaussians": len(g)}, self.save_view)
 
     def on_after_backward(self, trainer, pl_module) -> None:
         self._mark["backward"] = time.perf_counter()
@@ -101,6 +113,8 @@ def main() -> None:
     parser.add_argument("--grow-steps", type=int, default=1500, help="steps trained before profiling (default 1500)")
     parser.add_argument("--steps", type=int, default=20, help="steps profiled with each rasteriser (default 20)")
     parser.add_argument("--rasterizers", nargs="+", default=["pairs", "tiles"])
+    parser.add_argument("--save-view", default=None, help="save the first profiled view's footprints and colours here "
+                        "(torch.save; for scripts/bench_rasterize.py)")
     add_common_arguments(parser, warmup=0, repeats=None, device=False)
     parser.add_argument("overrides", nargs="*", help="more Hydra overrides, after --")
     args = parser.parse_args()
@@ -113,7 +127,7 @@ def main() -> None:
             "trainer.enable_model_summary=false", "++trainer.enable_checkpointing=false", "callbacks=none", "~logger",
             "trainer.accelerator=cpu", "trainer.devices=1", f"seed={args.seed}", "model.rasterizer=tiles",
             "+callbacks.stage_profiler._target_=__main__.StageProfiler", f"+callbacks.stage_profiler.grow_steps={args.grow_steps}",
-            f"+callbacks.stage_profiler.steps={args.steps}", f"+callbacks.stage_profiler.rasterizers=[{','.join(args.rasterizers)}]",
+            f"+callbacks.stage_profiler.steps={args.steps}", f"+callbacks.stage_profiler.save_view={args.save_view or 'null'}", f"+callbacks.stage_profiler.rasterizers=[{','.join(args.rasterizers)}]",
             *args.overrides,
         ]
         cfg, root = compose_preset(args.preset, overrides, args.root, output_dir=run_dir)

@@ -205,8 +205,12 @@ class SplatModule(SceneModule):
         with record_function("splats.project"):
             projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
         with record_function("splats.sh"):
-            directions = g.means[projection.ids] - c2w[:3, 3]
-            colours = spherical_harmonics(self.sh_degree(), g.coefficients[projection.ids], directions)
+            directions = g.means.index_select(0, projection.ids) - c2w[:3, 3]
+            # only the seen Gaussians' coefficients of the bands in use, gathered (not every Gaussian's concatenated first)
+            degree = self.sh_degree()
+            higher = g.shN[:, : coefficients_for(degree) - 1]
+            coefficients = torch.cat([g.sh0.index_select(0, projection.ids), higher.index_select(0, projection.ids)], dim=1)
+            colours = spherical_harmonics(degree, coefficients, directions)
         background = self.space.background if background is None else background
         with record_function("splats.rasterize"):
             out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs)

@@ -71,7 +71,9 @@ def project(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, 
     """Project N Gaussians into one camera: means (N, 3), quats (N, 4), log_scales (N, 3), opacities (N,) in (0, 1),
     K (3, 3), c2w (4, 4) OpenCV -> :class:`Projection` of those in front of the near plane whose box meets the image.
 
-    Culling is decided without gradients (which Gaussians), the footprints are computed with them."""
+    Culling is decided without gradients (which Gaussians), the footprints are computed with them. Gathers are
+    ``index_select``: their backward adds into the N rows with ``index_add`` (advanced indexing's ``index_put`` with
+    accumulation is several times slower on a CPU)."""
     if means.ndim != 2 or means.shape[-1] != 3 or quats.shape != (len(means), 4) or log_scales.shape != (len(means), 3) \
             or opacities.shape != (len(means),):
         raise ValueError(f"project expects means (N, 3), quats (N, 4), log_scales (N, 3), opacities (N,), got "
@@ -80,7 +82,7 @@ def project(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, 
     rotation, translation = w2c[:3, :3], w2c[:3, 3]
     with torch.no_grad():
         ids = torch.nonzero((means @ rotation.T + translation)[:, 2] > NEAR_PLANE).squeeze(1)
-    points = means[ids] @ rotation.T + translation  # (M, 3) in the camera
+    points = means.index_select(0, ids) @ rotation.T + translation  # (M, 3) in the camera
     x, y, z = points.unbind(-1)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     # J at x / z and y / z clamped 30 % of the half field of view beyond the image's edges (gsplat's limits)
@@ -89,11 +91,11 @@ def project(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, 
     ty = z * (y / z).clamp(-(cy / fy + margin_y), (height - cy) / fy + margin_y)
     zeros = torch.zeros_like(z)
     jacobian = torch.stack([fx / z, zeros, -fx * tx / z**2, zeros, fy / z, -fy * ty / z**2], dim=-1).reshape(-1, 2, 3)
-    in_camera = rotation @ covariances(quats[ids], log_scales[ids]) @ rotation.T  # (M, 3, 3)
+    in_camera = rotation @ covariances(quats.index_select(0, ids), log_scales.index_select(0, ids)) @ rotation.T  # (M, 3, 3)
     footprint = jacobian @ in_camera @ jacobian.transpose(1, 2)  # (M, 2, 2)
     a, b, c = footprint[:, 0, 0] + LOW_PASS, footprint[:, 0, 1], footprint[:, 1, 1] + LOW_PASS
     determinant = a * c - b * b
-    alpha = opacities[ids]
+    alpha = opacities.index_select(0, ids)
     if antialiased:
         unfiltered = footprint[:, 0, 0] * footprint[:, 1, 1] - b * b
         alpha = alpha * torch.sqrt((unfiltered / determinant).clamp(min=1e-10))  # not 0: sqrt's slope there is infinite
@@ -106,8 +108,9 @@ def project(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, 
         seen = (determinant > 0) & (sigmas > 0) & (high[:, 0] >= 0.5) & (low[:, 0] <= width - 0.5) \
             & (high[:, 1] >= 0.5) & (low[:, 1] <= height - 0.5)
         keep = torch.nonzero(seen).squeeze(1)
-    conics = torch.stack([c, -b, a], dim=-1)[keep] / determinant[keep, None]
-    return Projection(ids[keep], means2d[keep], conics, alpha[keep], z[keep], extents[keep])
+    conics = torch.stack([c, -b, a], dim=-1).index_select(0, keep) / determinant.index_select(0, keep)[:, None]
+    return Projection(*(value.index_select(0, keep) for value in (ids, means2d)), conics,
+                      *(value.index_select(0, keep) for value in (alpha, z, extents)))
 
 
 def pixel_ray_lengths(K: torch.Tensor, height: int, width: int) -> torch.Tensor:

@@ -5,12 +5,11 @@ The same values and gradients as :func:`~nerf_lightning.splats.rasterize_dense.r
 equal), without a tensor of (footprint, pixel) pairs:
 
 1. **Binning** (:func:`bin_footprints`): each footprint's pixel box (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`)
-   says which ``tile`` x ``tile`` tiles it touches. Footprints are listed tile by tile, nearest first: they are
-   visited in depth order (a stable sort, ties by index, as the reference) and appended to each of their tiles, so
-   no tile needs a sort of its own.
+   says which ``tile`` x ``tile`` tiles it touches. Footprints are listed tile by tile, then each tile's list is
+   sorted nearest first (a stable sort, ties by index, as the reference's one sort of them all), tiles in parallel.
 2. **Forward** (:func:`composite_tiles`), a parallel loop over tiles: a tile keeps its pixels' transmittance and sums,
    and takes its footprints nearest first, each over the pixels of its box inside the tile only. A pair is skipped
-   where alpha = min(0.999, o exp(-sigma)) < 1/255; a pixel is done before the footprint that would take its
+   where alpha = min(0.999, o exp(-sigma)) < 1/255 (without an exp where sigma is past log(255 o)); a pixel is done before the footprint that would take its
    transmittance to 1e-4 or below; a tile stops when all its pixels are done. Each pixel keeps the transmittance it
    ended with and the tile-list position where it stopped.
 3. **Backward** (:func:`composite_tiles_backward`): each tile walks its list back to front, recovering every pixel's
@@ -46,15 +45,18 @@ TILE = 16
 _CHUNK = 1
 
 
-@numba.njit(cache=True)
-def bin_footprints(order: np.ndarray, boxes: np.ndarray, tile: int, tiles_x: int, tiles_y: int):
+@numba.njit(parallel=True, cache=True)
+def bin_footprints(depths: np.ndarray, boxes: np.ndarray, tile: int, tiles_x: int, tiles_y: int):
     """Footprints listed tile by tile, nearest first.
 
-    ``order`` (M,) int64 the footprints nearest first; ``boxes`` (M, 4) int64 first and last column, first and last
-    row of each footprint's pixels (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`). Returns ``offsets``
-    (T + 1,) int64 (tile t's footprints are ``entries[offsets[t]:offsets[t + 1]]``), ``entries`` (E,) int32
-    footprint indices, and ``slot_offsets`` (M + 1,) int64 and ``slots`` (E,) int64: footprint f's positions in
-    ``entries`` are ``slots[slot_offsets[f]:slot_offsets[f + 1]]``, in tile order."""
+    ``depths`` (M,) the footprints' camera z; ``boxes`` (M, 4) int64 first and last column, first and last row of
+    each footprint's pixels (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`). Returns ``offsets`` (T + 1,)
+    int64 (tile t's footprints are ``entries[offsets[t]:offsets[t + 1]]``), ``entries`` (E,) int32 footprint
+    indices, and ``slot_offsets`` (M + 1,) int64 and ``slots`` (E,) int64: footprint f's positions in ``entries``
+    are ``slots[slot_offsets[f]:slot_offsets[f + 1]]``, in tile order.
+
+    Footprints are appended to their tiles in index order, then each tile's list is sorted by depth with a stable
+    sort (in parallel, tile by tile): nearest first, ties by index, as the reference's one stable sort of them all."""
     n = boxes.shape[0]
     n_tiles = tiles_x * tiles_y
     offsets = np.zeros(n_tiles + 1, np.int64)
@@ -71,11 +73,10 @@ def bin_footprints(order: np.ndarray, boxes: np.ndarray, tile: int, tiles_x: int
         offsets[t + 1] += offsets[t]
     for f in range(n):
         slot_offsets[f + 1] += slot_offsets[f]
-    entries = np.empty(offsets[n_tiles], np.int32)
+    unsorted = np.empty(offsets[n_tiles], np.int32)
     slots = np.empty(offsets[n_tiles], np.int64)
     cursor = offsets[:n_tiles].copy()
-    for i in range(n):
-        f = order[i]
+    for f in range(n):
         c0, c1, r0, r1 = boxes[f, 0], boxes[f, 1], boxes[f, 2], boxes[f, 3]
         if c1 < c0 or r1 < r0:
             continue
@@ -83,18 +84,32 @@ def bin_footprints(order: np.ndarray, boxes: np.ndarray, tile: int, tiles_x: int
         for ty in range(r0 // tile, r1 // tile + 1):
             for tx in range(c0 // tile, c1 // tile + 1):
                 t = ty * tiles_x + tx
-                entries[cursor[t]] = f
+                unsorted[cursor[t]] = f
                 slots[k] = cursor[t]
                 cursor[t] += 1
                 k += 1
+    entries = np.empty_like(unsorted)
+    moved_to = np.empty(len(unsorted), np.int64)  # an entry's position in its tile's sorted list
+    for t in numba.prange(n_tiles):
+        listed = unsorted[offsets[t]:offsets[t + 1]]
+        tile_depths = np.empty(len(listed), depths.dtype)
+        for j in range(len(listed)):
+            tile_depths[j] = depths[listed[j]]
+        nearest_first = np.argsort(tile_depths, kind="mergesort")  # stable
+        for j in range(len(listed)):
+            entries[offsets[t] + j] = listed[nearest_first[j]]
+            moved_to[offsets[t] + nearest_first[j]] = offsets[t] + j
+    for k in numba.prange(len(slots)):
+        slots[k] = moved_to[slots[k]]
     return offsets, entries, slot_offsets, slots
 
 
-@numba.njit(parallel=True, cache=True)
-def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, features, height, width, tile, tiles_x,
-                    shaded, accumulation, transmittance, stop):
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, features, fade_limits, height, width, tile,
+                    tiles_x, shaded, accumulation, transmittance, stop):
     """Composite every pixel front to back. Inputs: the binning (:func:`bin_footprints`), ``boxes`` (M, 4),
-    ``means2d`` (M, 2), ``conics`` (M, 3), ``opacities`` (M,), ``features`` (M, F). Written: ``shaded`` (H * W, F)
+    ``means2d`` (M, 2), ``conics`` (M, 3), ``opacities`` (M,), ``features`` (M, F), ``fade_limits`` (M,) float64
+    (:func:`fade_limits`). Written: ``shaded`` (H * W, F)
     the weighted sums of the features, ``accumulation`` (H * W,) the sum of the weights, ``transmittance`` (H * W,)
     float64 what is left after the last footprint drawn, ``stop`` (H * W,) int64 the tile-list position at which
     the pixel was done (its tile's end where it never was)."""
@@ -110,22 +125,26 @@ def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, feature
         weight_sums = np.zeros(n_pixels, np.float64)
         ends = np.full(n_pixels, offsets[t + 1], np.int64)
         active = n_pixels
-        for k in range(offsets[t], offsets[t + 1]):
+        end = offsets[t + 1]
+        for k in range(offsets[t], end):
             if active == 0:
                 break
             f = entries[k]
             mx, my = np.float64(means2d[f, 0]), np.float64(means2d[f, 1])
-            a, b, c = np.float64(conics[f, 0]), np.float64(conics[f, 1]), np.float64(conics[f, 2])
-            o = np.float64(opacities[f])
+            half_a, b, half_c = 0.5 * np.float64(conics[f, 0]), np.float64(conics[f, 1]), 0.5 * np.float64(conics[f, 2])
+            o, faint = np.float64(opacities[f]), fade_limits[f]
+            first, last = max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1)
             for row in range(max(boxes[f, 2], y0), min(boxes[f, 3], y1 - 1) + 1):
                 dy = row + 0.5 - my
-                for column in range(max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1) + 1):
-                    p = (row - y0) * tile_width + column - x0
-                    if ends[p] != offsets[t + 1]:
+                b_dy, c_dy2 = b * dy, half_c * dy * dy
+                base = (row - y0) * tile_width - x0
+                for column in range(first, last + 1):
+                    p = base + column
+                    if ends[p] != end:
                         continue
                     dx = column + 0.5 - mx
-                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < 0.0:
+                    sigma = (half_a * dx + b_dy) * dx + c_dy2
+                    if sigma < 0.0 or sigma > faint:  # faint: alpha surely under 1/255, no exp needed
                         continue
                     alpha = min(MAX_ALPHA, o * math.exp(-sigma))
                     if alpha < MIN_ALPHA:
@@ -149,9 +168,9 @@ def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, feature
             stop[pixel] = ends[p]
 
 
-@numba.njit(parallel=True, cache=True)
-def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities, features, height, width, tile, tiles_x,
-                             transmittance, stop, grad_shaded, grad_accumulation, slot_grads):
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities, features, fade_limits, height, width,
+                             tile, tiles_x, transmittance, stop, grad_shaded, grad_accumulation, slot_grads):
     """The gradients of :func:`composite_tiles`, back to front. ``grad_shaded`` (H * W, F) and ``grad_accumulation``
     (H * W,) are the loss's gradients of its outputs; written: ``slot_grads`` (E, 6 + F), for each tile-list entry
     its footprint's gradient from that tile's pixels: d means2d (2), d conics (3), d opacity, d features (F)."""
@@ -173,17 +192,20 @@ def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities
             f = entries[k]
             mx, my = np.float64(means2d[f, 0]), np.float64(means2d[f, 1])
             a, b, c = np.float64(conics[f, 0]), np.float64(conics[f, 1]), np.float64(conics[f, 2])
-            o = np.float64(opacities[f])
+            o, faint = np.float64(opacities[f]), fade_limits[f]
+            first, last = max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1)
             grads[:] = 0.0
             for row in range(max(boxes[f, 2], y0), min(boxes[f, 3], y1 - 1) + 1):
                 dy = row + 0.5 - my
-                for column in range(max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1) + 1):
-                    p = (row - y0) * tile_width + column - x0
+                b_dy, c_dy2 = b * dy, 0.5 * c * dy * dy
+                base = (row - y0) * tile_width - x0
+                for column in range(first, last + 1):
+                    p = base + column
                     if k >= ends[p]:
                         continue
                     dx = column + 0.5 - mx
-                    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < 0.0:
+                    sigma = (0.5 * a * dx + b_dy) * dx + c_dy2
+                    if sigma < 0.0 or sigma > faint:
                         continue
                     fade = math.exp(-sigma)
                     alpha = min(MAX_ALPHA, o * fade)
@@ -211,7 +233,7 @@ def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities
                 slot_grads[k, i] = grads[i]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def sum_slots(slot_offsets, slots, slot_grads, out):
     """``out`` (M, G): each footprint's gradient, the sum of its tile-list slots (``slot_grads`` (E, G)) in tile order."""
     for f in numba.prange(out.shape[0]):
@@ -220,21 +242,28 @@ def sum_slots(slot_offsets, slots, slot_grads, out):
                 out[f, i] += slot_grads[slots[j], i]
 
 
+def fade_limits(opacities: np.ndarray) -> np.ndarray:
+    """(M,) float64 for (M,) opacities: a sigma past which o exp(-sigma) is surely under 1/255 (log(255 o), plus a
+    margin for rounding), so that the loops skip those pixels without an exp; the exact alpha test follows for the rest."""
+    return np.log(np.maximum(opacities.astype(np.float64) / MIN_ALPHA, 1.0)) + 1e-6
+
+
 def _numpy(tensor: torch.Tensor) -> np.ndarray:
     return tensor.detach().contiguous().numpy()
 
 
 class TileRasterize(torch.autograd.Function):
     """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, F) features -> (H, W, F) weighted feature sums and (H, W)
-    accumulation, differentiable in the four inputs; on CPU tensors. ``order`` (M,) is the footprints nearest first,
-    ``boxes`` (M, 4) their pixel boxes."""
+    accumulation, differentiable in the four inputs; on CPU tensors. The last feature is the depth the footprints are
+    ordered by; ``boxes`` (M, 4) are their pixel boxes."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, order, boxes, height: int, width: int, tile: int = TILE):
+    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int, tile: int = TILE):
         tiles_x, tiles_y = -(-width // tile), -(-height // tile)
         arrays = tuple(_numpy(x) for x in (means2d, conics, opacities, features))
+        arrays = (*arrays, fade_limits(arrays[2]))
         box_array = _numpy(boxes)
-        offsets, entries, slot_offsets, slots = bin_footprints(_numpy(order), box_array, tile, tiles_x, tiles_y)
+        offsets, entries, slot_offsets, slots = bin_footprints(arrays[3][:, -1], box_array, tile, tiles_x, tiles_y)
         n_pixels, dtype = height * width, arrays[3].dtype
         shaded = np.empty((n_pixels, arrays[3].shape[1]), dtype)
         accumulation = np.empty(n_pixels, dtype)
@@ -258,7 +287,7 @@ class TileRasterize(torch.autograd.Function):
         grads = np.zeros((len(arrays[2]), 6 + n_features), np.float64)
         sum_slots(slot_offsets, slots, slot_grads, grads)
         grads = torch.from_numpy(grads.astype(dtype))
-        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None, None, None
+        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None, None
 
 
 def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, width: int,
@@ -266,11 +295,10 @@ def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, 
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). CPU tensors; differentiable in the footprints and
     colours (and the background)."""
-    order = torch.sort(projection.depths.detach(), stable=True).indices
     boxes = pixel_boxes(projection, height, width)
-    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z
+    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
     shaded, accumulation = TileRasterize.apply(projection.means2d, projection.conics, projection.opacities, features,
-                                               order, boxes, height, width)
+                                               boxes, height, width)
     rgb = shaded[..., :3] + (1.0 - accumulation)[..., None] * background
     depth = shaded[..., 3] / accumulation.clamp(min=1e-10)
     return {"rgb": rgb, "depth": depth, "accumulation": accumulation}

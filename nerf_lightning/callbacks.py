@@ -21,7 +21,7 @@ from nerf_lightning import __version__
 from nerf_lightning.checkpoints import CHECKPOINT_FORMAT
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.metrics import mse_to_psnr
-from nerf_lightning.models.contract import RendersCamera
+from nerf_lightning.models.contract import RendersCamera, implements
 from nerf_lightning.plots import plot_psnr_curves
 from nerf_lightning.video import write_gif
 
@@ -314,7 +314,7 @@ class LiveViewer(L.Callback):
         self._splats_refreshed_at = 0.0
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        if not isinstance(pl_module, RendersCamera):
+        if not implements(pl_module, RendersCamera):
             raise ValueError(f"viewer=live shows a model that renders a camera; this run trains a {type(pl_module).__name__}, "
                              "which renders none: leave viewer out, or train a radiance field (experiment=fast, ...)")
         if stage != "fit" or not trainer.is_global_zero or self.server is not None:

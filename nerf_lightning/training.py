@@ -20,7 +20,7 @@ from nerf_lightning.io import write_json
 
 # Batches are drawn in the main process on purpose: workers would only copy the precomputed tensors.
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
-warnings.filterwarnings("ignore", ".*isinstance\(treespec, LeafSpec\).*")
+warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\).*")
 # Lightning's adverts for its cloud services (litlogger, litmodels) on every run; it has no switch for them (Lightning-AI/pytorch-lightning#21294)
 logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(lambda record: "💡 Tip" not in record.getMessage())
 

@@ -21,15 +21,15 @@ def render(cfg: DictConfig) -> list[Path]:
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
     from nerf_lightning.checkpoints import load_model
     from nerf_lightning.io import write_png
-    from nerf_lightning.models.contract import RendersCamera, RendersImage
+    from nerf_lightning.models.contract import RendersCamera, RendersImage, implements
     from nerf_lightning.outputs.frames import render_camera_path
 
     model, info = load_model(cfg.ckpt_path, cfg.device, trust=cfg.trust_checkpoint)
     output_dir = ensure_writable(cfg.output_dir, "output_dir")
     scale = float(cfg.render.scale)
-    if isinstance(model, RendersCamera):
+    if implements(model, RendersCamera):
         return render_camera_path(model, info["config"], output_dir, cfg.render.path, cfg.render.frames, scale, cfg.render.fps, cfg.render.depth_colormap)
-    if isinstance(model, RendersImage):
+    if implements(model, RendersImage):
         image = model.render_image(scale)
         path = write_png(output_dir / f"rgb_scale{scale:g}.png", image)
         log.info("wrote %s (%dx%d)", path, image.shape[1], image.shape[0])

@@ -2,7 +2,7 @@
 
 Every model of a scene renders a camera (:class:`RendersCamera`): ``nerf-render``, ``nerf-eval``, ``nerf-view`` and the
 live viewer call :meth:`~RendersCamera.render_view` and nothing else of it. What only some models can do is asked for
-by protocol (``isinstance(model, HasDensity)``), never by the model's class or a kind string:
+by protocol (``implements(model, HasDensity)``), never by the model's class or a kind string:
 
 - :class:`HasDensity`: a density and a colour at any point, which ``nerf-export`` meshes;
 - :class:`ShowsOverlays`: things the viewer can draw over the render (the scene's box, occupied cells, ...);
@@ -116,7 +116,27 @@ class RendersImage(Protocol):
     def render_image(self, scale: float = 1.0) -> torch.Tensor: ...
 
 
+def protocol_members(capability: type) -> set[str]:
+    """The attributes and methods a protocol class names (its own and its protocol bases')."""
+    members: set[str] = set()
+    for base in capability.__mro__:
+        if base in (Protocol, object) or not getattr(base, "_is_protocol", False):
+            continue
+        members |= set(base.__dict__.get("__annotations__", {}))
+        members |= {name for name, value in base.__dict__.items() if callable(value) and not name.startswith("_")}
+    return members
+
+
+def implements(model: Any, capability: type) -> bool:
+    """Whether ``model`` has every member of the protocol ``capability``, looked up as attributes are (``hasattr``).
+
+    Not ``isinstance``: from Python 3.12 it looks a runtime-checkable protocol's members up statically
+    (``inspect.getattr_static``), which does not see what an ``nn.Module`` keeps in its ``_modules`` and
+    ``_buffers`` (a model's ``space``), so every model failed the check there."""
+    return all(hasattr(model, name) for name in protocol_members(capability))
+
+
 def require(model: Any, capability: type, command: str, what: str) -> None:
     """ValueError in one line when ``model`` lacks ``capability``: ``command`` needs ``what``, this model is X."""
-    if not isinstance(model, capability):
+    if not implements(model, capability):
         raise ValueError(f"{command} needs {what}; this checkpoint's model, {type(model).__name__}, has none")

@@ -21,7 +21,7 @@ import torch
 
 from nerf_lightning.data.scene_data import RENDER_PATHS
 from nerf_lightning.data.scene import Views
-from nerf_lightning.models.contract import HasGaussians, Overlay, ShowsOverlays
+from nerf_lightning.models.contract import HasGaussians, Overlay, ShowsOverlays, implements
 from nerf_lightning.viz.splats import SplatArrays
 from nerf_lightning.viz.viser_view import add_training_cameras, scene_frame
 
@@ -58,7 +58,7 @@ class ViewerPage:
         self._on_view_changed, self._on_render_path = on_view_changed, on_render_path
         self._on_drawn_by_changed = on_drawn_by_changed
         self.overlay_handles: dict[str, object] = {}
-        self.has_gaussians = isinstance(model, HasGaussians)
+        self.has_gaussians = implements(model, HasGaussians)
         self.splat_handle = None  # the browser's splats, once drawn (draw_splats)
         self.splats_text = "the Gaussians are on their way"
         self._build_scene()
@@ -87,7 +87,7 @@ class ViewerPage:
             self.output = gui.add_dropdown("Show", OUTPUTS, initial_value="rgb", disabled=self.splats_drawn)
             self.max_resolution = gui.add_slider("Max height (px)", min=32, max=2048, step=16, initial_value=min(2048, max_resolution))
             self.stats = gui.add_markdown(self.splats_text if self.splats_drawn else "waiting for the first frame")
-        names = self.model.overlay_names() if isinstance(self.model, ShowsOverlays) else {}
+        names = self.model.overlay_names() if implements(self.model, ShowsOverlays) else {}
         with gui.add_folder("Scene"):
             self.show_cameras = gui.add_checkbox("Training cameras", initial_value=True)
             self.overlay_boxes = {name: gui.add_checkbox(label, initial_value=False) for name, label in names.items()}

@@ -13,7 +13,7 @@ from nerf_lightning.data.scene import Views
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.models import ImageFieldModule, RadianceFieldModule
-from nerf_lightning.models.contract import HasDensity, RendersCamera, RendersImage, ShowsOverlays
+from nerf_lightning.models.contract import HasDensity, RendersCamera, RendersImage, ShowsOverlays, implements
 from nerf_lightning.outputs.evaluation import evaluate_views
 from nerf_lightning.outputs.export import export_model, formats_of
 from nerf_lightning.outputs.frames import write_path_renders
@@ -65,7 +65,7 @@ def orbit_views(n: int = 3, size: int = 24, with_images: bool = False, model=Non
 
 def test_a_new_kind_of_model_evaluates_and_renders_paths_through_the_contract(tmp_path):
     model = Sphere()
-    assert isinstance(model, RendersCamera) and not isinstance(model, HasDensity) and not isinstance(model, ShowsOverlays)
+    assert implements(model, RendersCamera) and not implements(model, HasDensity) and not implements(model, ShowsOverlays)
     views = orbit_views(with_images=True, model=model)
     views.images[0, :4] = 0.0  # one view differs from its render: a finite PSNR there, infinite (perfect) on the others
     rows = evaluate_views(model, views, tmp_path / "eval")
@@ -93,13 +93,13 @@ def test_the_shipped_models_declare_their_capabilities(make_config):
 
     radiance = instantiate(make_config("experiment=fast").model)
     assert isinstance(radiance, RadianceFieldModule)
-    assert isinstance(radiance, RendersCamera) and isinstance(radiance, HasDensity) and isinstance(radiance, ShowsOverlays)
+    assert implements(radiance, RendersCamera) and implements(radiance, HasDensity) and implements(radiance, ShowsOverlays)
     assert formats_of(radiance) == ["ply", "obj", "glb"]
     assert set(radiance.overlay_names()) == {"box", "occupied_cells"}
     box = radiance.overlay("box")
     assert box.kind == "lines" and box.points.shape == (12, 2, 3)
     image = instantiate(make_config("experiment=image").model)
-    assert isinstance(image, ImageFieldModule) and isinstance(image, RendersImage) and not isinstance(image, RendersCamera)
+    assert isinstance(image, ImageFieldModule) and implements(image, RendersImage) and not implements(image, RendersCamera)
 
 
 def test_render_view_of_a_radiance_field_is_its_rays_rendered(make_config):
@@ -133,3 +133,33 @@ def test_a_command_asks_the_model_for_what_it_needs_and_refuses_a_model_without_
         evaluate_checkpoint(ckpt, tmp_path / "eval")
     with pytest.raises(ValueError, match="format=obj needs a density to mesh .*ImageFieldModule.*nothing nerf-export writes"):
         export_model(model, "obj", tmp_path / "export", {})
+
+
+def test_a_model_whose_space_is_a_submodule_renders_a_camera_as_python_3_12_looks_it_up():
+    """Python 3.12's isinstance on a runtime-checkable protocol finds members with inspect.getattr_static, which does
+    not see an nn.Module's submodules: nerf-eval refused every checkpoint there (seen on a GPU machine's Python 3.12)."""
+    import inspect
+
+    from nerf_lightning.models.contract import protocol_members, require
+
+    model = _SpaceHolder()
+    with pytest.raises(AttributeError):
+        inspect.getattr_static(model, "space")  # where 3.12's isinstance looks, the space is not found
+    assert protocol_members(RendersCamera) == {"space", "device", "render_view"}
+    assert implements(model, RendersCamera)
+    require(model, RendersCamera, "nerf-eval", "a model that renders a camera")  # no error
+
+
+class _SpaceHolder(nn.Module):
+    """A model as the shipped ones hold their space: a submodule set after construction."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.space = SceneSpace(near=2.0, far=6.0)
+
+    @property
+    def device(self) -> torch.device:
+        return torch.device("cpu")
+
+    def render_view(self, K, c2w, height, width, abort=None):
+        return None

@@ -20,7 +20,9 @@ equal), without a tensor of (footprint, pixel) pairs:
    the same input gives the same gradients bit for bit, however the threads are scheduled.
 
 Transmittances and sums are carried in float64 inside the loops (a pixel may take hundreds of footprints, and the
-backward pass divides by 1 - alpha), the outputs are in the inputs' dtype.
+backward pass divides by 1 - alpha), the outputs are in the inputs' dtype. The Gaussian's fall-off exp(-sigma) is
+taken in float32, as the PyTorch rasterisers take it, and the loops are compiled with fast-math: together they make
+the loops close to twice as fast (LLVM's float32 exp), within the tests' 1e-5 of the reference.
 
 The autograd function :class:`TileRasterize` returns each pixel's weighted sums of the footprints' ``features``
 (colour and depth) and its accumulation; :func:`rasterize_tiles` blends the background and divides the depth in
@@ -104,7 +106,7 @@ def bin_footprints(depths: np.ndarray, boxes: np.ndarray, tile: int, tiles_x: in
     return offsets, entries, slot_offsets, slots
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
+@numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, features, fade_limits, height, width, tile,
                     tiles_x, shaded, accumulation, transmittance, stop):
     """Composite every pixel front to back. Inputs: the binning (:func:`bin_footprints`), ``boxes`` (M, 4),
@@ -146,7 +148,7 @@ def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, feature
                     sigma = (half_a * dx + b_dy) * dx + c_dy2
                     if sigma < 0.0 or sigma > faint:  # faint: alpha surely under 1/255, no exp needed
                         continue
-                    alpha = min(MAX_ALPHA, o * math.exp(-sigma))
+                    alpha = min(MAX_ALPHA, o * np.float64(math.exp(np.float32(-sigma))))
                     if alpha < MIN_ALPHA:
                         continue
                     after = left[p] * (1.0 - alpha)
@@ -168,7 +170,7 @@ def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, feature
             stop[pixel] = ends[p]
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
+@numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities, features, fade_limits, height, width,
                              tile, tiles_x, transmittance, stop, grad_shaded, grad_accumulation, slot_grads):
     """The gradients of :func:`composite_tiles`, back to front. ``grad_shaded`` (H * W, F) and ``grad_accumulation``
@@ -207,7 +209,7 @@ def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities
                     sigma = (0.5 * a * dx + b_dy) * dx + c_dy2
                     if sigma < 0.0 or sigma > faint:
                         continue
-                    fade = math.exp(-sigma)
+                    fade = np.float64(math.exp(np.float32(-sigma)))
                     alpha = min(MAX_ALPHA, o * fade)
                     if alpha < MIN_ALPHA:
                         continue

@@ -45,13 +45,27 @@ def _is_boolean_index(func: Any, args: tuple) -> bool:
     return any(isinstance(index, torch.Tensor) and index.dtype == torch.bool for index in indices or ())
 
 
+# a tensor made from host data (``torch.tensor``/``torch.as_tensor`` of Python numbers or lists): made on the host and,
+# where the code asks for a GPU, copied there from pageable memory, a copy that waits (CUDA reports it as a
+# synchronizing call); on a CPU nothing tells where it was meant to go, hence HostSyncs(host_data=True)
+HOST_DATA = "aten.lift_fresh (a tensor from host data)"
+
+
 class HostSyncs(TorchDispatchMode):
     """A dispatch mode that counts, by op name, the ops that make the host wait (``WAITING_OPS``, and indexing with a
-    boolean mask as ``aten.index (boolean)``); ``counts`` holds them once the ``with`` block has run."""
+    boolean mask as ``aten.index (boolean)``); ``counts`` holds them once the ``with`` block has run.
 
-    def __init__(self) -> None:
+    ``host_data``: also count every tensor made from host data (:data:`HOST_DATA`), on any device: on a GPU each one
+    asked for there is a copy that waits, which no other op shows, so that a test on a CPU can say a step makes none
+    (one a step did on a GPU: a batch's rays made with ``torch.as_tensor(1.0, device=...)``). Not a number assigned
+    into a tensor (``x[..., -1] = 1.0``: the number lifted to a host tensor, then filled in, which on a GPU is a
+    fill with the host's number, no copy); a tensor made from host data and then assigned in is taken for one too."""
+
+    def __init__(self, host_data: bool = False) -> None:
         super().__init__()
         self.counts: Counter[str] = Counter()
+        self.host_data = host_data
+        self._lifted: list[torch.Tensor] = []  # the last few tensors made from host data (an assignment's value?)
 
     def __torch_dispatch__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
         name = f"aten.{func.__name__.split('.')[0]}"
@@ -59,6 +73,18 @@ class HostSyncs(TorchDispatchMode):
             self.counts[name] += 1
         elif _is_boolean_index(func, args):
             self.counts[f"{name} (boolean)"] += 1
+        elif self.host_data and name == "aten.lift_fresh":
+            self.counts[HOST_DATA] += 1
+            out = func(*args, **(kwargs or {}))
+            self._lifted = [*self._lifted[-3:], out]
+            return out
+        elif self.host_data and self._lifted and name in ("aten.fill_", "aten.copy_", "aten.index_put_", "aten._index_put_impl_"):
+            value = args[2] if name.endswith("index_put_") and len(args) > 2 else args[1] if len(args) > 1 else None
+            if any(value is lifted for lifted in self._lifted):  # a number assigned into a tensor: not counted (see the class)
+                self._lifted = [lifted for lifted in self._lifted if lifted is not value]
+                self.counts[HOST_DATA] -= 1
+                if not self.counts[HOST_DATA]:
+                    del self.counts[HOST_DATA]
         return func(*args, **(kwargs or {}))
 
     @property
@@ -73,7 +99,8 @@ class CountHostSyncs(L.Callback):
     the next step's: its forward, backward and optimiser step, and also what Lightning and every callback do around
     it (logging, the progress bar, drawing the next batch), which wait for the device as much as the step itself;
     a validation ends the step before it. ``skip_nan_guard`` turns the model's NaN guard off
-    (``on_before_backward``, which reads the loss back):
+    (``on_before_backward``, which reads the loss back); ``host_data`` counts tensors made from host data too
+    (:class:`HostSyncs`; for a count on a CPU):
     ``+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: syncs.json}``.
 
     On CUDA it also counts what CUDA itself reports as a synchronizing call (``torch.cuda.set_sync_debug_mode``,
@@ -81,8 +108,8 @@ class CountHostSyncs(L.Callback):
     While a dispatch mode is on, ``torch.compile`` runs the function as written, so with ``model.compile=true`` the
     count is of the plain step (the ops the compiled graph runs too)."""
 
-    def __init__(self, path: str | None = None, skip_nan_guard: bool = False) -> None:
-        self.path, self.skip_nan_guard = path, skip_nan_guard
+    def __init__(self, path: str | None = None, skip_nan_guard: bool = False, host_data: bool = False) -> None:
+        self.path, self.skip_nan_guard, self.host_data = path, skip_nan_guard, host_data
         self.steps: list[Counter[str]] = []
         self._mode: HostSyncs | None = None
         self._cuda_warnings: warnings.catch_warnings | None = None
@@ -110,7 +137,7 @@ class CountHostSyncs(L.Callback):
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
         self._end_step()
-        self._mode = HostSyncs()
+        self._mode = HostSyncs(self.host_data)
         self._mode.__enter__()
         if pl_module.device.type == "cuda":  # CUDA's own report of every call that waits, copies included
             self._cuda_warnings = warnings.catch_warnings(record=True)

@@ -5,7 +5,7 @@ import warnings
 
 import torch
 
-from nerf_lightning.syncs import HostSyncs
+from nerf_lightning.syncs import HOST_DATA, HostSyncs
 
 
 def test_each_kind_of_wait_is_counted_by_name():
@@ -30,6 +30,21 @@ def test_fixed_shape_ops_are_not_counted():
         _ = torch.repeat_interleave(torch.arange(3), torch.tensor([1, 2, 3]), output_size=6)
         y[torch.tensor([1, 5])].sum().backward()  # an index of integers
     assert syncs.total == 0, syncs.counts
+
+
+def test_tensors_made_from_host_data_are_counted_where_asked():
+    # on a GPU, torch.tensor / as_tensor of Python numbers with device=cuda is a copy from the host that waits (one a
+    # step made a batch's rays, found there); on a CPU no op names it, so HostSyncs(host_data=True) counts them all
+    x = torch.rand(4)
+    for host_data in (False, True):
+        with HostSyncs(host_data=host_data) as syncs:
+            _ = torch.as_tensor(1.0, dtype=x.dtype, device=x.device)
+            _ = torch.tensor([1.0, 2.0], device=x.device)
+            _ = x.new_full((), 1.0) + x.new_zeros(3).fill_(2.0)  # fills on the device: no copy
+            y = x.clone()
+            y[..., -1] = 1.0  # a number assigned in: on a GPU a fill with the host's number, no copy
+            y[torch.arange(2, device=x.device)] = 2.0
+        assert syncs.counts == ({HOST_DATA: 2} if host_data else {}), syncs.counts
 
 
 def test_on_cuda_the_callback_also_counts_what_cuda_reports_as_synchronizing(monkeypatch):

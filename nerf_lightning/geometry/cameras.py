@@ -77,14 +77,23 @@ def pixel_to_camera(K: torch.Tensor, uv: torch.Tensor, s: torch.Tensor | float) 
     K (3, 3) or (N, 3, 3), uv (N, 2), s a number, (N,) or (N, 1) -> (N, 3).
     """
     if uv.ndim == 2:
-        depth = torch.as_tensor(s, dtype=uv.dtype, device=uv.device)
+        depth = _depth_on(uv, s)
         depth = depth[:, None] if depth.ndim == 1 else depth
         if K.ndim == 3:
             _check_per_point(K, uv, "K", (3, 3))
             return pixel_to_camera(K, uv[:, None], depth.expand(len(uv), 1)[:, None])[:, 0]
         return pixel_to_camera(K[None], uv[None], depth.expand(len(uv), 1)[None])[0]
-    depth = torch.as_tensor(s, dtype=uv.dtype, device=uv.device).expand(*uv.shape[:-1], 1)
+    depth = _depth_on(uv, s).expand(*uv.shape[:-1], 1)
     return unproject_points(uv, depth, K[:, None])
+
+
+def _depth_on(uv: torch.Tensor, s: torch.Tensor | float) -> torch.Tensor:
+    """``s`` as a tensor of ``uv``'s dtype on its device; a number made there by a fill: ``torch.as_tensor`` of a
+    number makes it on the host and copies it over, and on a GPU that copy makes the host wait (each training batch's
+    rays come through here: one wait a step)."""
+    if isinstance(s, (int, float)):
+        return uv.new_full((), float(s))
+    return torch.as_tensor(s, dtype=uv.dtype, device=uv.device)
 
 
 def pixel_to_ray(K: torch.Tensor, c2w: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

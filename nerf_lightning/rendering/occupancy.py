@@ -172,6 +172,13 @@ class OccupancyGrid(nn.Module):
             self.binary.copy_(self.occupancy > self.occupancy.mean().clamp(max=self.threshold))
 
 
+def _identity(points: torch.Tensor) -> torch.Tensor:
+    """The field-space map of a scene without contraction. (``to_field or identity`` would ask for the truth of a
+    bound method: torch 2.11's dynamo cannot tell it and fails a fullgraph compile with "Data-dependent branching";
+    ``is None`` it can.)"""
+    return points
+
+
 def step_edges(start: float, stop: float, step_size: float, cone_angle: float) -> torch.Tensor:
     """(K + 1,) float32 edges of the steps from ``start`` to past ``stop``: a step at distance t is
     ``max(step_size, cone_angle * t)`` long, so constant up to t = step_size / cone_angle and growing
@@ -232,7 +239,7 @@ def march_rays(
                                march_capacity or capacity if prune is not None else capacity, reach)
         return samples if prune is None else _pruned(samples, rays_o, rays_d, to_field, prune, alpha_threshold, early_stop_eps, capacity)
     n_rays = rays_o.shape[0]
-    to_field = to_field or (lambda points: points)
+    to_field = _identity if to_field is None else to_field  # not `or`: see _identity
     if perturb:
         shift = torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype, device=rays_o.device)
     else:
@@ -271,7 +278,7 @@ def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor
     if reach is None or reach <= 0:
         raise ValueError("march_rays: a fixed capacity needs reach, the longest a ray can be in the sampled range")
     n_rays, width = rays_o.shape[0], math.ceil(reach / step_size)
-    to_field = to_field or (lambda points: points)
+    to_field = _identity if to_field is None else to_field  # not `or`: see _identity
     # no generator keyword without a generator: a compiled step with a symbolic ray count cannot trace one
     draw = {} if generator is None else {"generator": generator}
     shift = (torch.rand(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device, **draw) if perturb
@@ -304,7 +311,7 @@ def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_
     """The fixed-capacity ``samples`` with opacity at least ``alpha_threshold`` and transmittance at least
     ``early_stop_eps`` (one density pass without gradients, composited along the table), in ``capacity`` samples."""
     n_rays, width = samples.n_rays, samples.width
-    to_field = to_field or (lambda points: points)
+    to_field = _identity if to_field is None else to_field  # not `or`: see _identity
     cells = samples.ray_indices * width + samples.slots
     with torch.no_grad():
         ray_of = samples.ray_indices.clamp(max=n_rays - 1)

@@ -106,6 +106,13 @@ def bin_footprints(depths: np.ndarray, boxes: np.ndarray, tile: int, tiles_x: in
     return offsets, entries, slot_offsets, slots
 
 
+@numba.njit(inline="always")
+def tile_rectangle(t: int, tiles_x: int, tile: int, height: int, width: int):
+    """Tile t's first row and column and its ends (exclusive), the image's edges cutting the last tiles short."""
+    y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
+    return y0, x0, min(y0 + tile, height), min(x0 + tile, width)
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, features, fade_limits, height, width, tile,
                     tiles_x, shaded, accumulation, transmittance, stop):
@@ -118,8 +125,7 @@ def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, feature
     n_features = features.shape[1]
     n_tiles = offsets.shape[0] - 1
     for t in numba.prange(n_tiles):
-        y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
-        y1, x1 = min(y0 + tile, height), min(x0 + tile, width)
+        y0, x0, y1, x1 = tile_rectangle(t, tiles_x, tile, height, width)
         tile_width = x1 - x0
         n_pixels = (y1 - y0) * tile_width
         left = np.ones(n_pixels, np.float64)  # transmittance
@@ -179,8 +185,7 @@ def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities
     n_features = features.shape[1]
     n_tiles = offsets.shape[0] - 1
     for t in numba.prange(n_tiles):
-        y0, x0 = (t // tiles_x) * tile, (t % tiles_x) * tile
-        y1, x1 = min(y0 + tile, height), min(x0 + tile, width)
+        y0, x0, y1, x1 = tile_rectangle(t, tiles_x, tile, height, width)
         tile_width = x1 - x0
         n_pixels = (y1 - y0) * tile_width
         left = np.empty(n_pixels, np.float64)

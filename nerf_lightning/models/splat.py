@@ -26,7 +26,7 @@ from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS
-from nerf_lightning.splats.rasterizers import AUTO, choose_rasterizer, rasterize_view
+from nerf_lightning.splats.rasterizers import AUTO, check_rasterizer, rasterize_view
 from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
 from nerf_lightning.splats.start import points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
@@ -90,7 +90,7 @@ class SplatModule(SceneModule):
         self.learning_rates = dict(learning_rates)
         self.steps, self.means_final_ratio, self.sh_degree_interval = steps, means_final_ratio, sh_degree_interval
         self.ssim_weight, self.antialiased, self.max_pairs = ssim_weight, antialiased, max_pairs
-        choose_rasterizer("cuda", rasterizer)  # a wrong name refused now, not at the first view
+        check_rasterizer(rasterizer)  # a wrong name refused now, not at the first view
         self.rasterizer = rasterizer
         if random_start not in ("box", "views"):
             raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")

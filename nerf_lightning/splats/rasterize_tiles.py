@@ -43,8 +43,6 @@ from nerf_lightning.splats.rasterize_dense import MAX_ALPHA, MIN_TRANSMITTANCE
 
 # a tile's side in pixels (3DGS's and gsplat's 16)
 TILE = 16
-# the per-pair work of a tile is uneven (a tile of sky has none): tiles are handed to threads a few at a time
-_CHUNK = 1
 
 
 @numba.njit(parallel=True, cache=True)

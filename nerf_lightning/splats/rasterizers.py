@@ -48,10 +48,15 @@ def tiles_available() -> bool:
     return _tiles_ready
 
 
-def choose_rasterizer(device_type: str, rasterizer: str = AUTO) -> str:
-    """``tiles`` or ``pairs`` for a view drawn on a device of type ``device_type`` ("cpu", "cuda", "mps")."""
+def check_rasterizer(rasterizer: str) -> None:
+    """ValueError in one line for a name that is not one of :data:`RASTERIZERS`."""
     if rasterizer not in RASTERIZERS:
         raise ValueError(f"model.rasterizer must be one of {', '.join(RASTERIZERS)}, got {rasterizer!r}")
+
+
+def choose_rasterizer(device_type: str, rasterizer: str = AUTO) -> str:
+    """``tiles`` or ``pairs`` for a view drawn on a device of type ``device_type`` ("cpu", "cuda", "mps")."""
+    check_rasterizer(rasterizer)
     if rasterizer == PAIRS or device_type != "cpu":
         return PAIRS
     return TILES if tiles_available() else PAIRS

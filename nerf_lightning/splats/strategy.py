@@ -58,10 +58,11 @@ class DefaultStrategy:
 
     def __init__(self, refine_start: int = 500, refine_stop: int = 15_000, refine_every: int = 100, reset_every: int = 3000,
                  grow_grad2d: float = 2e-4, grow_scale3d: float = 0.01, prune_opacity: float = 0.005, prune_scale3d: float = 0.1,
-                 max_count: int = 1_000_000, seed: int = 0) -> None:
+                 max_count: int = 1_000_000, prune_large_after: int | None = None, seed: int = 0) -> None:
         self.refine_start, self.refine_stop, self.refine_every, self.reset_every = refine_start, refine_stop, refine_every, reset_every
         self.grow_grad2d, self.grow_scale3d = grow_grad2d, grow_scale3d
         self.prune_opacity, self.prune_scale3d, self.max_count = prune_opacity, prune_scale3d, max_count
+        self.prune_large_after = reset_every if prune_large_after is None else prune_large_after
         self.scene_scale = 1.0
         self.generator = torch.Generator().manual_seed(seed)
         self.grad_sum: torch.Tensor | None = None  # (N,) the sum of each Gaussian's screen gradient norms
@@ -114,9 +115,9 @@ class DefaultStrategy:
             rows_from.append(torch.full((2 * len(halves),), -1, dtype=torch.long, device=halves.device))
         merged = {name: torch.cat(parts) for name, parts in new.items()}
         rows_from = torch.cat(rows_from)
-        # prune: too transparent, or (once opacities have been reset) too large
+        # prune: too transparent, or (once opacities have been reset, or after prune_large_after) too large
         prune = torch.sigmoid(merged["opacity_logits"]) < self.prune_opacity
-        if step > self.reset_every:
+        if step > self.prune_large_after:
             prune |= torch.exp(merged["log_scales"]).amax(dim=-1) > self.prune_scale3d * self.scene_scale
         kept = torch.nonzero(~prune).squeeze(1)
         gaussians.edit({name: value[kept] for name, value in merged.items()}, rows_from[kept], replace)

@@ -12,6 +12,7 @@ import torch
 
 from nerf_lightning.models.parameters import replace_parameter
 from nerf_lightning.splats.gaussians import PARAMETERS
+from nerf_lightning.splats.projection import Projection
 from nerf_lightning.splats.strategy import DefaultStrategy, MCMCStrategy, relocation
 from nerf_lightning.training import train
 from tests.models.test_splat import QUICK, gaussians_for
@@ -165,3 +166,21 @@ def test_a_short_mcmc_run_on_the_procedural_scene_learns_and_keeps_under_the_cap
     assert len(FirstStepPSNR.values) == 1 and FirstStepPSNR.values[0] < 11.0, FirstStepPSNR.values
     assert metrics["step"] == 240 and metrics["val/psnr"] > FirstStepPSNR.values[0] + 5.0, metrics
     assert metrics["train/gaussians"] == 3300
+
+
+@pytest.mark.parametrize(("prune_large_after", "step", "pruned"), [(None, 200, False), (None, 400, True), (100, 200, True)])
+def test_large_gaussians_are_pruned_only_after_prune_large_after_or_the_first_reset(prune_large_after, step, pruned):
+    g = gaussians_for(100)
+    with torch.no_grad():
+        g.log_scales[:] = math.log(0.01)
+        g.log_scales[:10] = math.log(0.5)  # over prune_scale3d (0.1) of the scene scale (1)
+        g.opacity_logits[:] = 2.0  # opaque: none goes for its opacity
+    optimizer, replace = stepped_optimizer(g)
+    strategy = DefaultStrategy(refine_start=0, refine_every=100, reset_every=300, prune_large_after=prune_large_after)
+    means2d = torch.zeros(100, 2, requires_grad=True)
+    means2d.grad = torch.zeros(100, 2)  # no gradient: nothing grows
+    strategy.after_backward(g, Projection(torch.arange(100), means2d, torch.zeros(100, 3), torch.zeros(100), torch.zeros(100),
+                                          torch.zeros(100, 2)), width=2, height=2)
+    strategy.after_step(g, step=step, replace=replace, means_lr=0.0)
+    assert len(g) == (90 if pruned else 100)
+    assert float(torch.exp(g.log_scales.detach()).amax()) == pytest.approx(0.01 if pruned else 0.5, rel=1e-2)

@@ -2,18 +2,25 @@
 register, how far the recovered cameras are from the published ones after a similarity alignment, and the seconds
 of each stage.
 
-    .venv/bin/python scripts/bench_process_data.py [--root ../shared/data/nerfstudio/fox | --turntable] [--masks]
-        [--mapper auto] [--photos N] [--max-size 1600] [--mappers-over-seeds 0 1 2 3] [--work DIR] [--out FILE.json]
+    .venv/bin/python scripts/bench_process_data.py [--root ../shared/data/nerfstudio/fox | --turntable] [--images images]
+        [--masks [masks]] [--mapper auto] [--photos N] [--max-size 1600] [--mappers-over-seeds 0 1 2 3] [--work DIR]
+        [--out FILE.json] [-- more process_capture keys as key=value]
+
+A masked object capture with the photographer's LLFF poses (moldGoldCape, at 912 px):
+
+    .venv/bin/python scripts/bench_process_data.py --root ../shared/data/masked_objects/moldGoldCape --images images_4 \
+        --masks masks_4
 
 ``--turntable``: the procedural turntable capture (rendered into the temporary folder; its reference poses are the
-cameras relative to the object). ``--masks``: hand ``<root>/masks`` to the command (``masks=``). The results table's
+cameras relative to the object). ``--images``: the photos' folder under ``--root`` (images); ``--masks [FOLDER]``:
+hand ``<root>/<FOLDER>`` (masks) to the command (``masks=``). The published poses are ``<root>/transforms.json``, or
+``<root>/poses_bounds.npy`` (LLFF: a row a photo in name order). The results table's
 posing rows are these JSONs: ``--out docs/results/posing/<name>.json``, then ``nerf-bench report``.
 
 The command's own settings (:func:`nerf_lightning.data.capture.process_capture`): one shared OPENCV camera, features
 read at ``--max-size`` px on the long side (1600), 8192 SIFT features an image, exhaustive matching (under 100
 images), ``--mapper`` (auto: both mappers, the model that explains more verified matches kept), seed 0. The photos are
-``<root>/images`` (``--photos N``: N of them, evenly spaced by name, for a quick run), the published poses
-``<root>/transforms.json``; the capture is written to ``--work`` (a temporary folder by default). Position errors are
+``<root>/<--images>`` (``--photos N``: N of them, evenly spaced by name, for a quick run); the capture is written to ``--work`` (a temporary folder by default). Position errors are
 percentages of the published cameras' spread (the root mean square distance of their centres from their mean).
 
 ``--mappers-over-seeds``: then, on the same images, features once and for each seed the matching (its RANSAC seeded)
@@ -35,6 +42,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import yaml
 
 from nerf_lightning.bench.micro import SHARED_DATA, finish, seed_everything, skip, start_result
 from nerf_lightning.data.scene import evenly_spaced
@@ -89,21 +98,25 @@ def main() -> None:
                                      epilog="\n".join(__doc__.splitlines()[1:]))
     parser.add_argument("--root", type=Path, default=SHARED_DATA / "nerfstudio" / "fox", help="a capture folder with images/ and transforms.json (default: fox)")
     parser.add_argument("--turntable", action="store_true", help="the procedural turntable capture instead of --root")
-    parser.add_argument("--masks", action="store_true", help="give the command <root>/masks (masks=)")
+    parser.add_argument("--images", default="images", help="the photos' folder under --root (default images)")
+    parser.add_argument("--masks", nargs="?", const="masks", default=None, help="give the command <root>/MASKS (masks=; default masks)")
     parser.add_argument("--mapper", choices=("auto", "global", "incremental"), default="auto")
     parser.add_argument("--photos", type=int, default=None, help="only this many photos, evenly spaced by name (default all)")
     parser.add_argument("--max-size", type=int, default=1600, help="the long side the features are read at (default 1600, the command's)")
     parser.add_argument("--mappers-over-seeds", type=int, nargs="*", default=[], help="seeds of the mapper comparison (none: skip it)")
     parser.add_argument("--work", type=Path, default=None, help="where to write the processed capture (default: a temporary folder)")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    parser.add_argument("settings", nargs="*", help="more process_capture keys, key=value (a number or a word)")
     args = parser.parse_args()
+    settings = {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in args.settings)}
     temporary = tempfile.TemporaryDirectory(prefix="bench_process_data_")
     if args.turntable:
         from nerf_lightning.data.formats import make_turntable_capture
 
         args.root = make_turntable_capture(Path(temporary.name) / "turntable")
-    if not (args.root / "images").is_dir() or not (args.root / "transforms.json").is_file():
-        skip(f"data not found: {args.root} (images/ and transforms.json)")
+    reference = args.root / "transforms.json" if (args.root / "transforms.json").is_file() else args.root / "poses_bounds.npy"
+    if not (args.root / args.images).is_dir() or not reference.is_file():
+        skip(f"data not found: {args.root} ({args.images}/ and transforms.json or poses_bounds.npy)")
     if importlib.util.find_spec("pycolmap") is None:
         skip("pycolmap (the colmap extra) is not installed: pip install nerf-lightning[colmap]")
     if args.photos is not None and args.photos < 3:
@@ -116,22 +129,23 @@ def main() -> None:
 
     with temporary:
         temporary = temporary.name
-        images = chosen_photos(args.root / "images", args.photos, Path(temporary) / "photos")
+        images = chosen_photos(args.root / args.images, args.photos, Path(temporary) / "photos")
         work = args.work or Path(temporary) / "capture"
-        masks = args.root / "masks" if args.masks else None
+        masks = args.root / args.masks if args.masks else None
         started = time.perf_counter()
         head = {**start_result("cpu"), "benchmark": "process_data", "root": str(args.root),
-                "capture": "procedural turntable" if args.turntable else args.root.name, "masks": args.masks}
+                "capture": "procedural turntable" if args.turntable else args.root.name, "images": args.images,
+                "masks": args.masks, "photos": args.photos, "process_capture": settings}
         try:  # min_registered=0: the photos that register are compared, however few
             report = process_capture(images, work, mapper=args.mapper, max_size=args.max_size, progress=False, seed=0, masks=masks,
-                                     min_registered=0.0)
+                                     **{"min_registered": 0.0, **settings})
         except ValueError as error:  # fewer than 3 registered: nothing to compare, which is the finding
             finish({**head, "images_given": len(list(images.iterdir())), "registered": None, "failed": str(error),
                     "total_s": time.perf_counter() - started}, args.out)
             return
         total = time.perf_counter() - started
-        errors = compare_with_reference(work, args.root / "transforms.json")
-        seeds = (mappers_over_seeds(work / "images", args.root / "transforms.json", args.mappers_over_seeds, Path(temporary), args.max_size)
+        errors = compare_with_reference(work, reference)
+        seeds = (mappers_over_seeds(work / "images", reference, args.mappers_over_seeds, Path(temporary), args.max_size)
                  if args.mappers_over_seeds else [])
     result = {
         **head, "pycolmap": pycolmap.__version__, "pycolmap_cuda": bool(getattr(pycolmap, "has_cuda", False)),
@@ -140,7 +154,8 @@ def main() -> None:
         **{key: errors[key] for key in ("median_position_error_percent_of_spread", "max_position_error_percent_of_spread",
                                         "median_rotation_error_deg", "max_rotation_error_deg")},
         "published_spread": errors["spread"],
-        **{key: report[key] for key in ("mean_reprojection_error_px", "mean_track_length", "points", "camera", "verified_matches_explained", "mappers")},
+        **{key: report[key] for key in ("mean_reprojection_error_px", "mean_track_length", "points", "camera", "verified_matches_explained", "mappers",
+                                            "matches", "focal_priors")},
         "settings": {key: report[key] for key in ("matcher", "mapper", "camera_model", "single_camera", "max_size")},
         "total_s": total, "seconds": report["seconds"],
         "mappers_over_seeds": seeds, "per_image": errors["per_image"],

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nerf_lightning.data.capture.images import mask_name, natural_key
+from nerf_lightning.data.capture.images import exif_focal_length, mask_name, natural_key
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 
@@ -111,10 +111,11 @@ def choose_matcher(matcher: str, count: int, from_video: bool) -> str:
 
 
 def extract_features(database: Path, images: Path, names: Sequence[str], camera_model: str, single_camera: bool,
-                     max_size: int, max_features: int, progress: bool, masks: Path | None = None) -> None:
+                     max_size: int, max_features: int, progress: bool, masks: Path | None = None) -> list[dict[str, Any]]:
     """SIFT keypoints and descriptors of ``images/<name>`` for each name into the COLMAP ``database``; the cameras
-    (one shared, or one an image) of ``camera_model`` with a focal length from EXIF or 1.2 x the long side. With
-    ``masks``, only the keypoints on a non-zero pixel of ``masks/<name>.png`` (full size, grey) are kept."""
+    (one shared, or one an image) of ``camera_model`` with a focal length from EXIF (:func:`correct_focal_priors`,
+    whose changes are returned) or 1.2 x the long side. With ``masks``, only the keypoints on a non-zero pixel of
+    ``masks/<name>.png`` (full size, grey) are kept."""
     pycolmap = import_pycolmap()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
@@ -136,6 +137,39 @@ def extract_features(database: Path, images: Path, names: Sequence[str], camera_
                 with contextlib.closing(pycolmap.Database.open(database)) as opened:
                     reader.existing_camera_id = opened.read_all_cameras()[0].camera_id
             bar.update(len(chunk))
+    return correct_focal_priors(database, images)
+
+
+# a camera's focal length from EXIF is replaced by this project's reading where the two differ by more than this
+FOCAL_PRIOR_TOLERANCE = 0.05
+
+
+def correct_focal_priors(database: Path, images: Path) -> list[dict[str, Any]]:
+    """Each camera of ``database`` given the focal length of its first image's EXIF read for the image as it is
+    (:func:`~nerf_lightning.data.capture.images.exif_focal_length`) where COLMAP's own reading differs from it by more
+    than :data:`FOCAL_PRIOR_TOLERANCE`: COLMAP takes a downscaled or cropped photo's EXIF as if for its full frame
+    (on moldGoldCape's 912 px copies 7558 px instead of 1890, and its incremental mapper then registered 2 of 59;
+    the two-view geometries, checked as calibrated, suffer too). Before matching, so that the matches are verified
+    with the right camera. Returns what was changed: camera, image, COLMAP's focal length and the one set."""
+    pycolmap = import_pycolmap()
+    changed = []
+    with contextlib.closing(pycolmap.Database.open(database)) as opened:
+        first_images = {}
+        for image in sorted(opened.read_all_images(), key=lambda image: natural_key(image.name)):
+            first_images.setdefault(image.camera_id, image.name)
+        for camera in opened.read_all_cameras():
+            name = first_images.get(camera.camera_id)
+            focal = exif_focal_length(images / name) if name is not None else None
+            if focal is None or abs(focal - camera.mean_focal_length()) <= FOCAL_PRIOR_TOLERANCE * focal:
+                continue
+            changed.append({"camera": int(camera.camera_id), "image": name, "colmap_px": round(camera.mean_focal_length(), 1),
+                            "set_px": round(focal, 1)})
+            params = np.array(camera.params)
+            params[list(camera.focal_length_idxs())] = focal
+            camera.params = params
+            camera.has_prior_focal_length = True
+            opened.update_camera(camera)
+    return changed
 
 
 def match_features(database: Path, names: Sequence[str], pairs: list[list[tuple[int, int]]], scratch: Path, seed: int, progress: bool) -> None:
@@ -188,6 +222,20 @@ def map_images(database: Path, images: Path, scratch: Path, count: int, mapper: 
         bar.n = models[0].num_reg_images() if models else 0  # the largest model's, where several were built
         bar.refresh()
     return models
+
+
+def database_statistics(database: Path) -> dict[str, float]:
+    """What each stage left in the matched ``database``, to say where a capture is lost: the keypoints an image (mean
+    and fewest: with masks, those on the object), the pairs matched, the pairs geometrically verified, and the mean
+    inlier matches a verified pair."""
+    pycolmap = import_pycolmap()
+    with contextlib.closing(pycolmap.Database.open(database)) as opened:
+        keypoints = [opened.num_keypoints_for_image(image.image_id) for image in opened.read_all_images()]
+        pair_ids, inliers = opened.read_two_view_geometry_num_inliers()
+        verified = [count for count in inliers if count > 0]
+        return {"keypoints_mean": float(np.mean(keypoints)) if keypoints else 0.0, "keypoints_min": int(min(keypoints, default=0)),
+                "pairs_matched": int(opened.num_matched_image_pairs()), "pairs_verified": len(verified),
+                "inliers_per_verified_pair": float(np.mean(verified)) if verified else 0.0}
 
 
 def sampson_distance(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
@@ -259,7 +307,9 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
     Returns:
         the model (a ``pycolmap.Reconstruction``, the largest its mapper built; None when none was built), the seconds
         each stage took, and of each mapper run its images registered and fraction of verified matches explained
-        (``mappers``) and which was kept (``mapper``).
+        (``mappers``), which was kept (``mapper``), and what features and matching left (``matches``,
+        :func:`database_statistics`), and the cameras whose EXIF focal length was corrected (``focal_priors``,
+        :func:`correct_focal_priors`).
     """
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)} (models whose lenses the transforms.json "
@@ -273,13 +323,14 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
     seconds = {}
     with colmap_log(verbose):
         started = time.perf_counter()
-        extract_features(database, images, names, camera_model, single_camera, max_size, max_features, progress, masks=masks)
+        focal_priors = extract_features(database, images, names, camera_model, single_camera, max_size, max_features, progress, masks=masks)
         seconds["features"] = time.perf_counter() - started
 
         started = time.perf_counter()
         pairs = exhaustive_pairs(len(names)) if matcher == "exhaustive" else sequential_pairs(len(names))
         match_features(database, names, pairs, colmap_dir / "pairs", seed, progress)
         seconds["matching"] = time.perf_counter() - started
+        matched = database_statistics(database)
 
         started = time.perf_counter()
         candidates, tried = {}, {}
@@ -296,12 +347,12 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
     for name in tried:
         shutil.rmtree(colmap_dir / f"models_{name}", ignore_errors=True)
     if not candidates:
-        return None, seconds, {"mapper": None, "mappers": tried}
+        return None, seconds, {"mapper": None, "mappers": tried, "matches": matched, "focal_priors": focal_priors}
     kept = max(candidates, key=lambda name: candidates[name][0])
     model = candidates[kept][1]
     (colmap_dir / "sparse" / "0").mkdir(parents=True, exist_ok=True)
     model.write(colmap_dir / "sparse" / "0")
-    return model, seconds, {"mapper": kept, "mappers": tried}
+    return model, seconds, {"mapper": kept, "mappers": tried, "matches": matched, "focal_priors": focal_priors}
 
 
 def camera_intrinsics(camera: Any) -> dict[str, Any]:

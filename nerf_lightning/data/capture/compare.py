@@ -1,5 +1,6 @@
-"""Recovered cameras against published ones of the same photos (two ``transforms.json`` files), after the
-similarity that best aligns their centres (:func:`nerf_lightning.geometry.alignment.camera_pose_errors`)."""
+"""Recovered cameras against published ones of the same photos (a ``transforms.json`` against a ``transforms.json`` or
+an LLFF ``poses_bounds.npy``), after the similarity that best aligns their centres
+(:func:`nerf_lightning.geometry.alignment.camera_pose_errors`)."""
 
 from __future__ import annotations
 
@@ -9,17 +10,36 @@ from typing import Any
 
 import torch
 
-from nerf_lightning.data.capture.images import natural_key
+from nerf_lightning.data.capture.images import IMAGE_SUFFIXES, natural_key
+from nerf_lightning.data.formats.llff import read_poses_bounds
 from nerf_lightning.geometry.alignment import camera_pose_errors
 
 
 def cameras_by_image(path: str | Path) -> dict[str, torch.Tensor]:
-    """A transforms.json's frames: image file name -> (4, 4) ``transform_matrix`` (float64)."""
+    """A capture's cameras: image stem -> (4, 4) OpenGL camera-to-world (float64), from a ``transforms.json``
+    (its frames' ``transform_matrix``) or from an LLFF ``poses_bounds.npy`` (a row an image of the capture's
+    ``images*/`` folder, in name order, as LLFF writes them). Stems, so that ``IMG_1.JPG`` and a copy of it written
+    as ``IMG_1.png`` are one photo."""
     path = Path(path)
     if path.is_dir():
-        path = path / "transforms.json"
+        path = path / "transforms.json" if (path / "transforms.json").is_file() or not (path / "poses_bounds.npy").is_file() \
+            else path / "poses_bounds.npy"
+    if path.suffix == ".npy":
+        return llff_cameras_by_image(path)
     frames = json.loads(path.read_text())["frames"]
-    return {Path(frame["file_path"]).name: torch.tensor(frame["transform_matrix"], dtype=torch.float64) for frame in frames}
+    return {Path(frame["file_path"]).stem: torch.tensor(frame["transform_matrix"], dtype=torch.float64) for frame in frames}
+
+
+def llff_cameras_by_image(path: Path) -> dict[str, torch.Tensor]:
+    """``poses_bounds.npy`` -> image stem -> (4, 4) OpenGL camera-to-world; the names from the first ``images*/`` folder
+    beside it that holds as many images as the file has rows."""
+    c2w, _, _ = read_poses_bounds(path)
+    c2w = torch.cat([torch.from_numpy(c2w), torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(len(c2w), 1, 4)], dim=1)
+    for folder in sorted(path.parent.glob("images*")):
+        names = sorted((file.stem for file in folder.iterdir() if file.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
+        if len(names) == len(c2w):
+            return dict(zip(names, c2w))
+    raise ValueError(f"{path}: no images*/ folder beside it holds its {len(c2w)} images, so its rows cannot be named")
 
 
 def compare_with_reference(recovered: str | Path, reference: str | Path) -> dict[str, Any]:

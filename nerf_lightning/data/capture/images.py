@@ -10,6 +10,7 @@ project's loaders read the pixels as stored, so the pixels themselves are turned
 from __future__ import annotations
 
 import io
+import math
 import re
 import shutil
 from collections.abc import Iterable, Sequence
@@ -25,6 +26,11 @@ from nerf_lightning.io import write_atomic
 # read by Pillow; HEIC/HEIF (iPhones) is listed so that such files are named as unreadable rather than silently left out
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".heic", ".heif")
 EXIF_ORIENTATION = 0x0112
+# the EXIF sub-IFD and the tags a focal length in pixels is read from
+EXIF_IFD, FOCAL_LENGTH, FOCAL_LENGTH_35MM = 0x8769, 0x920A, 0xA405
+PIXEL_X, PIXEL_Y, FOCAL_PLANE_X_RESOLUTION, FOCAL_PLANE_UNIT = 0xA002, 0xA003, 0xA20E, 0xA210
+# FocalPlaneResolutionUnit: 2 inches, 3 centimetres, 4 millimetres, 5 micrometres (1 and absent: inches, in practice)
+MILLIMETRES_A_UNIT = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 JPEG_QUALITY = 95
 # which mask pixels are the object: white (at least half white; non-zero in a mask of 0s and 1s) or black
 MASK_OBJECTS = ("white", "black")
@@ -54,6 +60,43 @@ def upright(image: Image.Image) -> Image.Image:
 def orientation(image: Image.Image) -> int:
     """The EXIF orientation tag, 1 (as stored) when absent."""
     return int(image.getexif().get(EXIF_ORIENTATION, 1) or 1)
+
+
+def exif_focal_length(path: Path) -> float | None:
+    """The focal length in pixels of the photo at ``path`` as its pixels are now, from its EXIF; None without one.
+
+    The camera wrote its EXIF for the sensor's full frame (``PixelXDimension`` x ``PixelYDimension``). A photo
+    downscaled or cropped since, with its EXIF kept, has other pixels: COLMAP's own reading (the focal length in mm
+    times the focal plane's pixels a mm) then gives the full frame's focal length, several times too long for a
+    downscaled copy, and its mapper fails on it. Here it is scaled by the short side's ratio, which is right for a
+    downscale and for a crop that keeps the short side (a square crop of a 3:2 frame); an arbitrary crop cannot be
+    told apart. Read from the focal length in mm and the focal plane's resolution, or else from the 35 mm equivalent
+    (36 mm across the frame's long side)."""
+    try:
+        with Image.open(path) as opened:
+            width, height = upright(opened).size if orientation(opened) != 1 else opened.size
+            tags = opened.getexif().get_ifd(EXIF_IFD)
+    except Exception:  # unreadable EXIF: COLMAP's own guess stands
+        return None
+
+    def number(tag: int) -> float | None:
+        try:
+            value = float(tags.get(tag) or 0.0)
+        except (TypeError, ValueError, ZeroDivisionError):
+            return None
+        return value if math.isfinite(value) and value > 0 else None
+
+    frame = (number(PIXEL_X), number(PIXEL_Y))
+    frame_short, frame_long = (min(frame), max(frame)) if None not in frame else (float(min(width, height)), float(max(width, height)))
+    millimetres, density = number(FOCAL_LENGTH), number(FOCAL_PLANE_X_RESOLUTION)
+    unit = MILLIMETRES_A_UNIT.get(int(tags.get(FOCAL_PLANE_UNIT) or 2))
+    if millimetres is not None and density is not None and unit is not None:
+        full_frame = millimetres * density / unit
+    elif number(FOCAL_LENGTH_35MM) is not None:
+        full_frame = number(FOCAL_LENGTH_35MM) / 36.0 * frame_long
+    else:
+        return None
+    return full_frame * min(width, height) / frame_short
 
 
 def save_image(image: Image.Image, path: Path) -> Path:

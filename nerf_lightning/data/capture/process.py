@@ -317,7 +317,8 @@ def process_capture(
         seconds["total"] = time.perf_counter() - started
         report.update({
             "images_given": len(names), "registered": len(posed), "unregistered": unregistered, "matcher": chosen,
-            "mapper": mapping["mapper"], "mappers": mapping["mappers"],
+            "mapper": mapping["mapper"], "mappers": mapping["mappers"], "matches": mapping["matches"],
+            "focal_priors": mapping["focal_priors"],
             "verified_matches_explained": mapping["mappers"][mapping["mapper"]]["verified_matches_explained"],
             "camera_model": camera_model, "single_camera": bool(single_camera), "max_size": int(max_size),
             **model_statistics(model),
@@ -351,6 +352,9 @@ def format_report(report: dict[str, Any]) -> str:
         "sparse_pc.ply, colmap/, report.json",
         f"next: nerf-train experiment=fast_unbounded data.root={output}" + (" data.masks=background" if masks else ""),
     ]
+    for prior in report.get("focal_priors", []):
+        lines.insert(2, f"focal length from {prior['image']}'s EXIF read for its own size: {prior['set_px']:.0f} px (COLMAP read "
+                        f"{prior['colmap_px']:.0f} px, as if for the camera's full frame: the photo was downscaled or cropped)")
     if masks:
         lines.insert(3, f"masks: {masks['count']} from {masks['folder']} ({masks['mask_object']} = object), on average "
                         f"{100.0 * masks['mean_object_fraction']:.0f}% of a photo; features matched on the object alone")

@@ -273,7 +273,8 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
 
     def reconstruct(images, names, colmap_dir, *, masks=None, **options):  # COLMAP's part stood in for: see the test below
         handed["masks"] = sorted(path.name for path in masks.iterdir()) if masks is not None else None
-        mapping = {"mapper": "incremental", "mappers": {"incremental": {"registered": len(names), "verified_matches_explained": 1.0}}}
+        mapping = {"mapper": "incremental", "mappers": {"incremental": {"registered": len(names), "verified_matches_explained": 1.0}},
+                   "matches": {}, "focal_priors": []}
         return synthetic_model(list(names), SIZE), {"features": 0.0, "matching": 0.0, "mapping": 0.0}, mapping
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)

@@ -69,7 +69,7 @@ def posing_table(results: list[dict[str, Any]]) -> list[str]:
     ]
     for r in results:
         lines.append(
-            f"| {r['capture']} | {'yes' if r.get('masks') else 'no'} | {r['images_given']} | {_number(r.get('registered'), 0)} "
+            f"| {r['capture']}{'' if r.get('images', 'images') == 'images' else ' ' + r['images'] + '/'} | {'yes' if r.get('masks') else 'no'} | {r['images_given']} | {_number(r.get('registered'), 0)} "
             f"| {_number(r.get('median_position_error_percent_of_spread'), 2)} / {_number(r.get('max_position_error_percent_of_spread'), 2)} "
             f"| {_number(r.get('median_rotation_error_deg'), 2)} / {_number(r.get('max_rotation_error_deg'), 2)} "
             f"| {r['total_s']:.0f} | {r['machine']['name']} | {r['date'][:10]} |"

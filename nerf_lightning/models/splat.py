@@ -28,7 +28,7 @@ from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, proj
 from nerf_lightning.splats.rasterize import MAX_PAIRS
 from nerf_lightning.splats.rasterizers import AUTO, check_rasterizer, rasterize_view
 from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
-from nerf_lightning.splats.start import points_seen_by_views
+from nerf_lightning.splats.start import points_in_visual_hull, points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
 
 log = logging.getLogger(__name__)
@@ -120,7 +120,7 @@ class SplatModule(SceneModule):
         if self.strategy is not None:
             self.strategy.scene_scale = float(self.scene_scale)
         if len(self.gaussians) == 0 and not getattr(self.trainer, "ckpt_path", None):  # a resumed run's come from its checkpoint
-            self.start_gaussians(datamodule.scene)
+            self.start_gaussians(datamodule.scene, getattr(datamodule, "mask_mode", None))
         self.check_memory(self.trainer.strategy.root_device)
 
     def check_memory(self, device: torch.device) -> None:
@@ -139,14 +139,22 @@ class SplatModule(SceneModule):
     def use_space(self, space: SceneSpace) -> None:
         self.space = space.to(self.device)
 
-    def start_gaussians(self, scene: Any) -> None:
+    def start_gaussians(self, scene: Any, mask_mode: str | None = None) -> None:
+        """The Gaussians' start: the capture's sparse points where it has them; else, with ``random_start=views``, on
+        training pixels' rays (with ``data.masks=background``, inside the masks' visual hull); else in a random box."""
         generator = torch.Generator().manual_seed(0)
         points = getattr(scene, "points", None)
         if points is not None and len(points) > 0:
             log.info("Gaussians start from the capture's %d sparse points", len(points))
             self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
             return
-        if self.random_start == "views":
+        if self.random_start == "views" and mask_mode == "background" and scene.train.masks is not None:
+            near = float(scene.near) if self.random_near is None else self.random_near
+            far = min(float(scene.far), self.random_extent)
+            positions, colours = points_in_visual_hull(scene.train, near, far, self.random_count, generator)
+            log.info("the capture has no sparse points: %d Gaussians start inside the visual hull of its masks (on masked "
+                     "pixels' rays at depths %g to %g that the other views see inside their masks)", len(positions), near, far)
+        elif self.random_start == "views":
             near = float(scene.near) if self.random_near is None else self.random_near
             far = min(float(scene.far), self.random_extent)
             log.info("the capture has no sparse points: %d Gaussians start on random training pixels' rays at depths "

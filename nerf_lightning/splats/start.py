@@ -5,6 +5,10 @@ or all around a subject in a room, most of such a cube is never seen, or lies be
 point lies on a training pixel's ray, at a camera depth drawn uniformly between the scene's near bound and
 ``far``, and takes that pixel's colour: the Gaussians start where the photos can move them, already roughly the
 photos' colours.
+
+With masks that cut the object out (``data.masks=background``) the start is the masks' visual hull
+(:func:`points_in_visual_hull`): points on the masked pixels' rays that every other view which sees them also
+sees inside its mask, so that the Gaussians start on the object, not in the black around it.
 """
 
 from __future__ import annotations
@@ -33,3 +37,49 @@ def points_seen_by_views(views: Views, near: float, far: float, count: int,
         return positions, torch.full((count, 3), 0.5)
     colours = as_float_rgb(views.images[view, v.long().clamp(max=views.height - 1), u.long().clamp(max=views.width - 1)])
     return positions, colours
+
+
+def points_in_visual_hull(views: Views, near: float, far: float, count: int, generator: torch.Generator,
+                          agreement: float = 0.9, min_seen: float = 0.25, tries: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
+    """``count`` points inside the visual hull of the training views' masks -> positions (count, 3) and colours
+    (count, 3) in [0, 1]: candidates on random masked pixels' rays (depths uniform in [near, far]), kept where at least
+    ``agreement`` of the views that see them in frame see them inside their masks (a rough hand-made mask misses
+    some views), and at least ``min_seen`` of the views (and 3) see them in frame. Candidates are drawn ``tries`` times as many as wanted; ValueError where none is kept (masks that
+    do not agree: wrong poses, or masks of another object). Fewer than ``count`` where fewer candidates were kept."""
+    if views.masks is None:
+        raise ValueError("a visual hull start needs the training views' masks")
+    masks = views.masks.reshape(len(views), -1)
+    pixels = torch.nonzero(masks.reshape(-1)).squeeze(1)
+    if len(pixels) == 0:
+        raise ValueError("the training views' masks cover no pixel: no visual hull to start the Gaussians in")
+    drawn = pixels[torch.randint(len(pixels), (tries * count,), generator=generator)]
+    view, pixel = drawn // masks.shape[1], drawn % masks.shape[1]
+    v = (pixel // views.width).float() + torch.rand(len(drawn), generator=generator)
+    u = (pixel % views.width).float() + torch.rand(len(drawn), generator=generator)
+    depth = near + (far - near) * torch.rand(len(drawn), generator=generator)
+    K, c2w = views.K.float(), views.c2w.float()
+    in_camera = torch.stack([(u - K[view, 0, 2]) / K[view, 0, 0], (v - K[view, 1, 2]) / K[view, 1, 1], torch.ones_like(u)], dim=-1)
+    positions = (c2w[view, :3, :3] @ (in_camera * depth[:, None])[..., None])[..., 0] + c2w[view, :3, 3]
+    inside = torch.zeros(len(drawn))
+    seen = torch.zeros(len(drawn))
+    for other in range(len(views)):  # project every candidate into each view: in frame? inside the mask?
+        w2c = torch.linalg.inv(c2w[other])
+        points = positions @ w2c[:3, :3].T + w2c[:3, 3]
+        z = points[:, 2]
+        column = K[other, 0, 0] * points[:, 0] / z.clamp(min=1e-6) + K[other, 0, 2]
+        row = K[other, 1, 1] * points[:, 1] / z.clamp(min=1e-6) + K[other, 1, 2]
+        in_frame = (z > 1e-6) & (column >= 0) & (column < views.width) & (row >= 0) & (row < views.height)
+        index = row.long().clamp(0, views.height - 1) * views.width + column.long().clamp(0, views.width - 1)
+        seen += in_frame.float()
+        inside += (in_frame & masks[other][index]).float()
+    # and seen by enough views: a point off to the side, in frame of its own view alone, is inside that one mask
+    enough = max(3.0, min_seen * len(views))
+    kept = torch.nonzero((inside >= agreement * seen) & (seen >= enough)).squeeze(1)
+    if len(kept) == 0:
+        raise ValueError("no point on the masked pixels' rays lies inside the other views' masks: the masks and the poses "
+                         "do not agree (masks of another photo, or poses of another capture)")
+    kept = kept[:count]  # fewer where few candidates were kept: a repeated point would start with no size
+    if views.images is None:
+        return positions[kept], torch.full((len(kept), 3), 0.5)
+    colours = as_float_rgb(views.images[view[kept], v[kept].long().clamp(max=views.height - 1), u[kept].long().clamp(max=views.width - 1)])
+    return positions[kept], colours

@@ -107,7 +107,8 @@ def write_masks(masks: dict[Path, Path], sizes: dict[str, tuple[int, int]], stag
     """Each photo's mask (``masks``: photo -> mask file) into ``staging/masks`` and ``staging/masks_<k>``, and as
     COLMAP reads masks into ``staging/colmap/masks/<image name>.png``; of each image's name, the fraction of it that
     is object. ``sizes``: (width, height) of each image written, by name. ValueError, one line naming the masks that
-    cannot be read, a mask of another size than its photo (both named, both sizes) or one with no object in it."""
+    cannot be read, a mask of another size than its photo (both named, both sizes), one with no object in it or one
+    that is all object."""
     fractions, unreadable = {}, []
     colmap_masks = staging / "colmap" / "masks"
     colmap_masks.mkdir(parents=True, exist_ok=True)
@@ -128,6 +129,11 @@ def write_masks(masks: dict[Path, Path], sizes: dict[str, tuple[int, int]], stag
             raise ValueError(f"mask {path.name} (of {photo.name}) is all background, nothing to match: no pixel of it is {mask_object} "
                              f"(mask_object={mask_object}); draw the object in it, or mask_object={other} if the masks mark the "
                              f"object {other}")
+        if mask.all():
+            other = "black" if mask_object == "white" else "white"
+            raise ValueError(f"mask {path.name} (of {photo.name}) is all object, it leaves nothing out: every pixel of it is "
+                             f"{mask_object} (mask_object={mask_object}); mask_object={other} if the masks mark the object "
+                             f"{other}, or leave out masks= for photos with nothing to leave out")
         written = write_capture_mask(mask, name, staging, downscales)
         # COLMAP wants the mask as <image name>.png; a hard link costs nothing and leaves with colmap/masks
         try:

@@ -115,6 +115,8 @@ def break_masks(case: str, photos: Path, masks: Path) -> None:
         (masks / "photo_1.png").write_bytes(b"\x89PNG\r\n\x1a\n not a PNG after all")
     elif case == "background":
         Image.new("L", SIZE, 0).save(masks / "photo_0.png")
+    elif case == "object":
+        Image.new("L", SIZE, 255).save(masks / "photo_1.png")
     elif case == "two":
         Image.new("L", SIZE, 255).save(masks / "photo_0.png.png")
 
@@ -125,6 +127,7 @@ ERRORS = {
     "size": (ValueError, r"mask photo_2\.png is 100x80 but its photo photo_2\.png is 161x121"),
     "unreadable": (ValueError, r"could not read 1 of the 3 masks in .*masks: photo_1\.png \("),
     "background": (ValueError, r"mask photo_0\.png \(of photo_0\.png\) is all background, nothing to match.*mask_object=black"),
+    "object": (ValueError, r"mask photo_1\.png \(of photo_1\.png\) is all object, it leaves nothing out.*mask_object=black"),
     "two": (ValueError, r"photo_0\.png has 2 masks in .*\(photo_0\.png, photo_0\.png\.png\); keep one"),
     "video": (ValueError, r"masks are not supported with a video input \(clip\.mp4\)"),
 }

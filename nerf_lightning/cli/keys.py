@@ -255,6 +255,7 @@ def check_process_data_keys(cfg: DictConfig) -> None:
     if not isinstance(downscales, (list, ListConfig)) or not all(is_integer(factor) and factor >= 2 for factor in downscales):
         raise ValueError(f"downscales must be a list of integers of 2 or more, such as [2, 4, 8] (or []), got {shown(downscales)}")
     check_number(cfg, "min_registered", low=0.0, high=1.0)
+    check_bool(cfg, "escalate")
     check_integer(cfg, "seed", *SEED_RANGE)
     check_text(cfg, "masks", "a folder with a mask for each photo", null=True)
     check_choice(cfg, "mask_object", MASK_OBJECTS)

@@ -18,7 +18,7 @@ def process(cfg: DictConfig) -> dict:
 
     return process_capture(cfg.input, cfg.output, frames=cfg.frames, matcher=cfg.matcher, mapper=cfg.mapper, camera_model=cfg.camera_model,
                            single_camera=cfg.single_camera, max_size=cfg.max_size, max_features=cfg.max_features,
-                           downscales=list(cfg.downscales), min_registered=cfg.min_registered, seed=cfg.seed,
+                           downscales=list(cfg.downscales), min_registered=cfg.min_registered, escalate=cfg.escalate, seed=cfg.seed,
                            masks=None if cfg.masks in (None, "") else str(cfg.masks), mask_object=str(cfg.mask_object),
                            progress=cfg.progress, verbose=cfg.verbose)
 

@@ -111,11 +111,13 @@ def choose_matcher(matcher: str, count: int, from_video: bool) -> str:
 
 
 def extract_features(database: Path, images: Path, names: Sequence[str], camera_model: str, single_camera: bool,
-                     max_size: int, max_features: int, progress: bool, masks: Path | None = None) -> list[dict[str, Any]]:
+                     max_size: int, max_features: int, progress: bool, masks: Path | None = None,
+                     strong: bool = False) -> list[dict[str, Any]]:
     """SIFT keypoints and descriptors of ``images/<name>`` for each name into the COLMAP ``database``; the cameras
     (one shared, or one an image) of ``camera_model`` with a focal length from EXIF (:func:`correct_focal_priors`,
     whose changes are returned) or 1.2 x the long side. With ``masks``, only the keypoints on a non-zero pixel of
-    ``masks/<name>.png`` (full size, grey) are kept."""
+    ``masks/<name>.png`` (full size, grey) are kept. ``strong``: SIFT with affine shape estimation and domain-size
+    pooling (COLMAP's options for wide baselines and shiny, weakly textured subjects; slower)."""
     pycolmap = import_pycolmap()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
@@ -127,6 +129,7 @@ def extract_features(database: Path, images: Path, names: Sequence[str], camera_
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = max_size
     extraction.sift.max_num_features = max_features
+    extraction.sift.estimate_affine_shape = extraction.sift.domain_size_pooling = strong
     mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
     with tqdm(total=len(names), desc="features", unit="image", disable=not progress) as bar:
         for chunk in chunks(names, max(4, 2 * (os.cpu_count() or 1))):
@@ -172,11 +175,14 @@ def correct_focal_priors(database: Path, images: Path) -> list[dict[str, Any]]:
     return changed
 
 
-def match_features(database: Path, names: Sequence[str], pairs: list[list[tuple[int, int]]], scratch: Path, seed: int, progress: bool) -> None:
+def match_features(database: Path, names: Sequence[str], pairs: list[list[tuple[int, int]]], scratch: Path, seed: int, progress: bool,
+                   guided: bool = False) -> None:
     """Match the features of each pair of images (indices into ``names``) and keep the matches that fit a two-view
     geometry (fundamental, essential or homography matrix, RANSAC seeded with ``seed``), chunk by chunk through pair
-    lists in ``scratch``."""
+    lists in ``scratch``. ``guided``: a second round of matching guided by each pair's verified geometry."""
     pycolmap = import_pycolmap()
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = guided
     scratch.mkdir(parents=True, exist_ok=True)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = scratch / "pairs.txt"
@@ -185,7 +191,7 @@ def match_features(database: Path, names: Sequence[str], pairs: list[list[tuple[
     with tqdm(total=sum(map(len, pairs)), desc="matching", unit="pair", disable=not progress) as bar:
         for chunk in pairs:
             pairing.match_list_path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in chunk))
-            pycolmap.match_image_pairs(database, pairing_options=pairing, verification_options=verification)
+            pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=pairing, verification_options=verification)
             bar.update(len(chunk))
 
 
@@ -291,7 +297,7 @@ def verified_matches_explained(database: Path, reconstruction: Any, threshold_px
 
 def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher: str, mapper: str = "auto", camera_model: str = "OPENCV",
                 single_camera: bool = True, max_size: int = 1600, max_features: int = 8192, seed: int = 0, masks: Path | None = None,
-                progress: bool = True, verbose: bool = False) -> tuple[Any | None, dict[str, float], dict[str, Any]]:
+                progress: bool = True, verbose: bool = False, strong: bool = False) -> tuple[Any | None, dict[str, float], dict[str, Any]]:
     """Structure from motion of ``images/<name>`` for each name: ``colmap_dir/database.db`` and the chosen model,
     also written to ``colmap_dir/sparse/0`` (COLMAP's binary format).
 
@@ -304,6 +310,7 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
         max_size: the long side, in pixels, images are read at for feature extraction.
         max_features: SIFT features kept an image.
         masks: a folder of COLMAP's masks, ``<name>.png`` for each name (0 where features are dropped), or None.
+        strong: the stronger settings: SIFT with affine shapes and domain-size pooling, and guided matching.
     Returns:
         the model (a ``pycolmap.Reconstruction``, the largest its mapper built; None when none was built), the seconds
         each stage took, and of each mapper run its images registered and fraction of verified matches explained
@@ -323,12 +330,13 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
     seconds = {}
     with colmap_log(verbose):
         started = time.perf_counter()
-        focal_priors = extract_features(database, images, names, camera_model, single_camera, max_size, max_features, progress, masks=masks)
+        focal_priors = extract_features(database, images, names, camera_model, single_camera, max_size, max_features, progress, masks=masks,
+                                        strong=strong)
         seconds["features"] = time.perf_counter() - started
 
         started = time.perf_counter()
         pairs = exhaustive_pairs(len(names)) if matcher == "exhaustive" else sequential_pairs(len(names))
-        match_features(database, names, pairs, colmap_dir / "pairs", seed, progress)
+        match_features(database, names, pairs, colmap_dir / "pairs", seed, progress, guided=strong)
         seconds["matching"] = time.perf_counter() - started
         matched = database_statistics(database)
 

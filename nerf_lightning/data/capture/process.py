@@ -59,6 +59,18 @@ from nerf_lightning.io import write_atomic, write_json
 
 log = logging.getLogger(__name__)
 
+# under this fraction registered, the capture is posed again with stronger settings (:func:`escalated_settings`)
+ESCALATE_BELOW = 0.9
+
+
+def escalated_settings(max_size: int, max_features: int, sizes: dict[str, tuple[int, int]]) -> dict[str, Any]:
+    """The stronger settings a capture that registered too few is posed again with: features read at twice
+    ``max_size`` (up to the photos' own size: a small object then covers more pixels), twice as many of them, SIFT
+    with affine shapes and domain-size pooling, and guided matching."""
+    longest = max(max(size) for size in sizes.values())
+    return {"max_size": int(min(2 * max_size, max(longest, max_size))), "max_features": int(2 * max_features), "strong": True}
+
+
 ADVICE = ("photos with more overlap (each part of the scene in 3 or more of them, taken a step apart, not turning on "
           "the spot), sharper ones (more light, steadier hands), a textured subject")
 
@@ -157,10 +169,13 @@ def check_masks_apart(masks: Path, output: Path) -> None:
                          "out of it or write to another output")
 
 
-def check_registered(registered: int, unregistered: list[str], given: int, source: Path, matcher: str, min_registered: float) -> None:
+def check_registered(registered: int, unregistered: list[str], given: int, source: Path, matcher: str, min_registered: float,
+                     escalated: bool = False) -> None:
     """ValueError, one line naming the images left out and what to change, when COLMAP posed fewer than 3 images or
-    fewer than ``min_registered`` of them."""
+    fewer than ``min_registered`` of them (``escalated``: also with the stronger settings, which the line says)."""
     change = ("try matcher=exhaustive, " if matcher == "sequential" else "") + ADVICE
+    if escalated:
+        change = "stronger settings (features at twice the size, affine shapes, guided matching) did not help either; " + change
     if registered == 0:
         raise ValueError(f"COLMAP registered none of the {given} images of {source}: no two of them matched well enough "
                          f"to start a model; {change}")
@@ -215,6 +230,7 @@ def process_capture(
     max_features: int = 8192,
     downscales: Sequence[int] = (2, 4, 8),
     min_registered: float = 0.5,
+    escalate: bool = True,
     seed: int = 0,
     masks: str | Path | None = None,
     mask_object: str = "white",
@@ -236,6 +252,8 @@ def process_capture(
         max_features: SIFT features an image.
         downscales: factors of the smaller copies, ``images_<k>/``.
         min_registered: stop with an error when COLMAP poses fewer than this fraction of the images.
+        escalate: where fewer than :data:`ESCALATE_BELOW` of the images register, pose them again with stronger
+            (slower) settings (:func:`escalated_settings`), say so, and keep the model that registered more.
         seed: COLMAP's random seed.
         masks: a folder with a mask for each photo, named as the photo (``IMG_1.jpg`` <- ``IMG_1.png``, or
             ``IMG_1.jpg.png``), of its size upright (EXIF orientation applied, as to the photos), any format Pillow
@@ -310,11 +328,30 @@ def process_capture(
             staging / "images", names, staging / "colmap", matcher=chosen, mapper=mapper, camera_model=camera_model, single_camera=single_camera,
             max_size=int(max_size), max_features=int(max_features), seed=seed,
             masks=staging / "colmap" / "masks" if fractions else None, progress=progress, verbose=verbose)
+        posed = registered_names(model) if model is not None else set()
+        if escalate and len(posed) < ESCALATE_BELOW * len(names):
+            stronger = escalated_settings(int(max_size), int(max_features), sizes)
+            log.warning("COLMAP registered %d of the %d images; posing them again with stronger settings: features at %d px, "
+                        "%d of them, affine shapes and domain-size pooling, guided matching (slower)", len(posed), len(names),
+                        stronger["max_size"], stronger["max_features"])
+            again, again_seconds, again_mapping = reconstruct(
+                staging / "images", names, staging / "colmap_escalated", matcher=chosen, mapper=mapper, camera_model=camera_model,
+                single_camera=single_camera, seed=seed, masks=staging / "colmap" / "masks" if fractions else None, progress=progress,
+                verbose=verbose, **stronger)
+            again_posed = registered_names(again) if again is not None else set()
+            report["escalated"] = {"registered_before": len(posed), "registered_after": len(again_posed),
+                                   "settings": {key: value for key, value in stronger.items() if key != "strong"},
+                                   "seconds": round(sum(again_seconds.values()), 2)}
+            seconds["escalation"] = sum(again_seconds.values())
+            if len(again_posed) > len(posed):
+                shutil.rmtree(staging / "colmap", ignore_errors=True)
+                (staging / "colmap_escalated").rename(staging / "colmap")
+                model, mapping, posed = again, again_mapping, again_posed
+            shutil.rmtree(staging / "colmap_escalated", ignore_errors=True)
         shutil.rmtree(staging / "colmap" / "masks", ignore_errors=True)  # masks/ holds them, by the photos' names
         seconds.update(stage_seconds)
-        posed = registered_names(model) if model is not None else set()
         unregistered = [name for name in names if name not in posed]
-        check_registered(len(posed), unregistered, len(names), source, chosen, min_registered)
+        check_registered(len(posed), unregistered, len(names), source, chosen, min_registered, escalated="escalated" in report)
 
         write_started = time.perf_counter()
         transforms = reconstruction_to_transforms(model, mask_folder="masks" if fractions else None)
@@ -358,6 +395,11 @@ def format_report(report: dict[str, Any]) -> str:
         "sparse_pc.ply, colmap/, report.json",
         f"next: nerf-train experiment=fast_unbounded data.root={output}" + (" data.masks=background" if masks else ""),
     ]
+    if "escalated" in report:
+        escalated = report["escalated"]
+        lines.insert(1, f"too few registered at first ({escalated['registered_before']}): posed again with stronger settings "
+                        f"({escalated['settings']['max_size']} px, {escalated['settings']['max_features']} features, affine shapes, "
+                        f"guided matching), which registered {escalated['registered_after']}")
     for prior in report.get("focal_priors", []):
         lines.insert(2, f"focal length from {prior['image']}'s EXIF read for its own size: {prior['set_px']:.0f} px (COLMAP read "
                         f"{prior['colmap_px']:.0f} px, as if for the camera's full frame: the photo was downscaled or cropped)")

@@ -123,6 +123,7 @@ def test_photos_that_do_not_register_fail_in_one_line_with_exit_2(tmp_path):
     (output / "notes.txt").write_text("kept")
     line = one_error_line(process_data(f"input={noise_photos(tmp_path / 'photos')}", f"output={output}", cwd=tmp_path))
     assert "registered none of the 5 images" in line and "overlap" in line
+    assert "stronger settings (features at twice the size, affine shapes, guided matching) did not help either" in line
     assert_nothing_written(output)
     assert [path.name for path in output.iterdir()] == ["notes.txt"]
 

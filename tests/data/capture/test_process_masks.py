@@ -357,3 +357,42 @@ def test_colmap_keeps_only_the_keypoints_inside_the_masks(tmp_path, max_size):
         assert ((columns >= 0) & (columns < size[0]) & (rows >= 0) & (rows < size[1])).all()
         outside = ~objects[name][unmasked[name][:, 1].astype(int).clip(0, size[1] - 1), unmasked[name][:, 0].astype(int).clip(0, size[0] - 1)]
         assert outside.mean() > 0.3, (name, outside.mean())
+
+
+@needs_pycolmap
+@pytest.mark.parametrize("escalate", [True, False])
+def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_and_says_so(tmp_path, monkeypatch, escalate):
+    import nerf_lightning.data.capture.process as process
+    from nerf_lightning.data.capture import format_report, process_capture
+
+    photos = object_photos(tmp_path / "photos", count=6)
+    masks = save_masks(tmp_path / "masks", photos)
+    calls = []
+
+    def reconstruct(images, names, colmap_dir, *, masks=None, **options):  # COLMAP stood in for: 3 of 6, then 6 of 6
+        calls.append(options)
+        colmap_dir.mkdir(parents=True, exist_ok=True)
+        posed = list(names) if options.get("strong") else list(names)[:3]
+        mapping = {"mapper": "incremental", "mappers": {"incremental": {"registered": len(posed), "verified_matches_explained": 1.0}},
+                   "matches": {}, "focal_priors": []}
+        return synthetic_model(posed, SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
+
+    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    report = process_capture(photos, tmp_path / "out", masks=masks, max_size=1600, max_features=8192, min_registered=0.4,
+                             escalate=escalate, progress=False)
+    if not escalate:
+        assert len(calls) == 1 and report["registered"] == 3 and "escalated" not in report
+        return
+    # the photos are 161 px across: features at their own size or max_size, whichever is more; twice the features
+    assert calls[1]["strong"] and calls[1]["max_size"] == 1600 and calls[1]["max_features"] == 16384
+    assert report["registered"] == 6 and report["escalated"]["registered_before"] == 3 and report["escalated"]["registered_after"] == 6
+    assert len(json.loads((tmp_path / "out" / "transforms.json").read_text())["frames"]) == 6
+    assert "too few registered at first (3): posed again with stronger settings" in format_report(report)
+
+
+def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_the_photos():
+    from nerf_lightning.data.capture.process import escalated_settings
+
+    assert escalated_settings(1600, 8192, {"a": (4000, 4000)}) == {"max_size": 3200, "max_features": 16384, "strong": True}
+    assert escalated_settings(1600, 8192, {"a": (2400, 1800)})["max_size"] == 2400
+    assert escalated_settings(1600, 8192, {"a": (912, 912)})["max_size"] == 1600

@@ -148,15 +148,13 @@ class SplatModule(SceneModule):
             log.info("Gaussians start from the capture's %d sparse points", len(points))
             self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
             return
+        near = float(scene.near) if self.random_near is None else self.random_near
+        far = min(float(scene.far), self.random_extent)
         if self.random_start == "views" and mask_mode == "background" and scene.train.masks is not None:
-            near = float(scene.near) if self.random_near is None else self.random_near
-            far = min(float(scene.far), self.random_extent)
             positions, colours = points_in_visual_hull(scene.train, near, far, self.random_count, generator)
             log.info("the capture has no sparse points: %d Gaussians start inside the visual hull of its masks (on masked "
                      "pixels' rays at depths %g to %g that the other views see inside their masks)", len(positions), near, far)
         elif self.random_start == "views":
-            near = float(scene.near) if self.random_near is None else self.random_near
-            far = min(float(scene.far), self.random_extent)
             log.info("the capture has no sparse points: %d Gaussians start on random training pixels' rays at depths "
                      "%g to %g, with their pixels' colours", self.random_count, near, far)
             positions, colours = points_seen_by_views(scene.train, near, far, self.random_count, generator)

@@ -30,13 +30,21 @@ def points_seen_by_views(views: Views, near: float, far: float, count: int,
     u = torch.rand(count, generator=generator) * views.width
     v = torch.rand(count, generator=generator) * views.height
     depth = near + (far - near) * torch.rand(count, generator=generator)
+    return points_at_pixels(views, view, u, v, depth), colours_at_pixels(views, view, u, v)
+
+
+def points_at_pixels(views: Views, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """(P,) view indices, pixel coordinates u, v and camera depths -> (P, 3) points on those pixels' rays in the world."""
     K, c2w = views.K[view].float(), views.c2w[view].float()
     in_camera = torch.stack([(u - K[:, 0, 2]) / K[:, 0, 0], (v - K[:, 1, 2]) / K[:, 1, 1], torch.ones_like(u)], dim=-1) * depth[:, None]
-    positions = (c2w[:, :3, :3] @ in_camera[..., None])[..., 0] + c2w[:, :3, 3]
+    return (c2w[:, :3, :3] @ in_camera[..., None])[..., 0] + c2w[:, :3, 3]
+
+
+def colours_at_pixels(views: Views, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(P, 3) the colours of those pixels in [0, 1] (grey where the views have no images)."""
     if views.images is None:
-        return positions, torch.full((count, 3), 0.5)
-    colours = as_float_rgb(views.images[view, v.long().clamp(max=views.height - 1), u.long().clamp(max=views.width - 1)])
-    return positions, colours
+        return torch.full((len(view), 3), 0.5)
+    return as_float_rgb(views.images[view, v.long().clamp(max=views.height - 1), u.long().clamp(max=views.width - 1)])
 
 
 def points_in_visual_hull(views: Views, near: float, far: float, count: int, generator: torch.Generator,
@@ -44,8 +52,9 @@ def points_in_visual_hull(views: Views, near: float, far: float, count: int, gen
     """``count`` points inside the visual hull of the training views' masks -> positions (count, 3) and colours
     (count, 3) in [0, 1]: candidates on random masked pixels' rays (depths uniform in [near, far]), kept where at least
     ``agreement`` of the views that see them in frame see them inside their masks (a rough hand-made mask misses
-    some views), and at least ``min_seen`` of the views (and 3) see them in frame. Candidates are drawn ``tries`` times as many as wanted; ValueError where none is kept (masks that
-    do not agree: wrong poses, or masks of another object). Fewer than ``count`` where fewer candidates were kept."""
+    some views), and at least ``min_seen`` of the views (and 3) see them in frame. Candidates are drawn ``tries``
+    times as many as wanted; fewer than ``count`` come back where fewer were kept. ValueError where none is kept
+    (masks that do not agree: wrong poses, or masks of another object)."""
     if views.masks is None:
         raise ValueError("a visual hull start needs the training views' masks")
     masks = views.masks.reshape(len(views), -1)
@@ -57,9 +66,8 @@ def points_in_visual_hull(views: Views, near: float, far: float, count: int, gen
     v = (pixel // views.width).float() + torch.rand(len(drawn), generator=generator)
     u = (pixel % views.width).float() + torch.rand(len(drawn), generator=generator)
     depth = near + (far - near) * torch.rand(len(drawn), generator=generator)
+    positions = points_at_pixels(views, view, u, v, depth)
     K, c2w = views.K.float(), views.c2w.float()
-    in_camera = torch.stack([(u - K[view, 0, 2]) / K[view, 0, 0], (v - K[view, 1, 2]) / K[view, 1, 1], torch.ones_like(u)], dim=-1)
-    positions = (c2w[view, :3, :3] @ (in_camera * depth[:, None])[..., None])[..., 0] + c2w[view, :3, 3]
     inside = torch.zeros(len(drawn))
     seen = torch.zeros(len(drawn))
     for other in range(len(views)):  # project every candidate into each view: in frame? inside the mask?
@@ -79,7 +87,4 @@ def points_in_visual_hull(views: Views, near: float, far: float, count: int, gen
         raise ValueError("no point on the masked pixels' rays lies inside the other views' masks: the masks and the poses "
                          "do not agree (masks of another photo, or poses of another capture)")
     kept = kept[:count]  # fewer where few candidates were kept: a repeated point would start with no size
-    if views.images is None:
-        return positions[kept], torch.full((len(kept), 3), 0.5)
-    colours = as_float_rgb(views.images[view[kept], v[kept].long().clamp(max=views.height - 1), u[kept].long().clamp(max=views.width - 1)])
-    return positions[kept], colours
+    return positions[kept], colours_at_pixels(views, view[kept], u[kept], v[kept])

@@ -26,7 +26,7 @@ from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS
-from nerf_lightning.splats.rasterizers import AUTO, check_rasterizer, rasterize_view
+from nerf_lightning.splats.rasterizers import AUTO, TILES, check_rasterizer, choose_rasterizer, rasterize_view
 from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
 from nerf_lightning.splats.start import points_in_visual_hull, points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
@@ -207,16 +207,25 @@ class SplatModule(SceneModule):
         NeRF renderers measure it), accumulation (H, W), and the :class:`Projection` (for the strategy)."""
         g = self.gaussians
         K, c2w = K.to(self.device, torch.float32), c2w.to(self.device, torch.float32)
-        # the labels name the step's stages in a profile (scripts/profile_splat_step.py)
-        with record_function("splats.project"):
-            projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
-        with record_function("splats.sh"):
-            directions = g.means.index_select(0, projection.ids) - c2w[:3, 3]
-            # only the seen Gaussians' coefficients of the bands in use, gathered (not every Gaussian's concatenated first)
-            degree = self.sh_degree()
-            higher = g.shN[:, : coefficients_for(degree) - 1]
-            coefficients = torch.cat([g.sh0.index_select(0, projection.ids), higher.index_select(0, projection.ids)], dim=1)
-            colours = spherical_harmonics(degree, coefficients, directions)
+        degree = self.sh_degree()
+        if not torch.is_grad_enabled() and choose_rasterizer(self.device.type, self.rasterizer) == TILES:
+            # a view to look at (nerf-render, nerf-eval, the viewer, validation): projection and colour in one
+            # numba loop, held equal to the two PyTorch steps below; where tiles draw, numba is there
+            from nerf_lightning.splats.projection_fast import project_and_shade
+
+            with record_function("splats.project_and_shade"):
+                projection, colours = project_and_shade(g.means, g.quats, g.log_scales, g.opacities, g.sh0, g.shN,
+                                                        degree, K, c2w, height, width, self.antialiased)
+        else:
+            # the labels name the step's stages in a profile (scripts/profile_splat_step.py)
+            with record_function("splats.project"):
+                projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
+            with record_function("splats.sh"):
+                directions = g.means.index_select(0, projection.ids) - c2w[:3, 3]
+                # only the seen Gaussians' coefficients of the bands in use, gathered (not every Gaussian's concatenated first)
+                higher = g.shN[:, : coefficients_for(degree) - 1]
+                coefficients = torch.cat([g.sh0.index_select(0, projection.ids), higher.index_select(0, projection.ids)], dim=1)
+                colours = spherical_harmonics(degree, coefficients, directions)
         background = self.space.background if background is None else background
         with record_function("splats.rasterize"):
             out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs)

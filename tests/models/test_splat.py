@@ -97,6 +97,27 @@ def test_a_view_without_gaussians_in_sight_is_drawn_as_background(make_config, s
     assert out["accumulation"].abs().max() == 0
 
 
+def test_a_view_drawn_to_look_at_is_the_view_drawn_to_train(make_config):
+    """render_view (no gradients: the fused numba projection where tiles draw) against draw with gradients (the
+    PyTorch projection and SH), on Gaussians of every SH degree's coefficients."""
+    from hydra.utils import instantiate
+
+    model = instantiate(make_config(*QUICK, "model.gaussians.sh_degree=3").model).eval()  # eval: all three bands
+    generator = torch.Generator().manual_seed(3)
+    model.gaussians.initialise(torch.randn(500, 3, generator=generator) * 0.4, torch.rand(500, 3, generator=generator), generator)
+    with torch.no_grad():
+        model.gaussians.shN.normal_(0.0, 0.2, generator=generator)
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
+    c2w = torch.eye(4)
+    c2w[2, 3] = -3.0
+    assert model.sh_degree() == 3
+    looked_at = model.render_view(K, c2w, 24, 32)
+    trained, _ = model.draw(K, c2w, 24, 32)
+    assert looked_at["accumulation"].mean() > 0.2  # the Gaussians are in sight
+    for key in ("rgb", "depth", "accumulation"):
+        torch.testing.assert_close(looked_at[key], trained[key].detach(), atol=1e-5, rtol=1e-5, msg=key)
+
+
 def test_splats_refuse_rays_and_a_contracted_space_by_name(make_config, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     with pytest.raises(ValueError, match="Gaussian splats train on whole views or patches: use data=views"):

@@ -78,6 +78,7 @@ def test_eval_on_a_second_file_of_the_capture_matches_the_held_out_split(trained
         assert a["view"] == b["view"] and a["psnr"] == pytest.approx(b["psnr"], abs=1e-3)
 
 
+@pytest.mark.slow  # three command-line runs (half a minute): out of CI
 def test_export_and_render_map_back_to_the_capture(trained, capture, tmp_path):
     run, _ = trained
     ckpt = run / "checkpoints" / "last.ckpt"

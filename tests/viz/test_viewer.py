@@ -474,6 +474,7 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
         viewer.server.stop()
 
 
+@pytest.mark.slow  # two trainings side by side (half a minute): out of CI, which the browser test above keeps the viewer in
 @needs_browser
 def test_training_with_a_live_view_reaches_the_same_psnr_and_outlives_the_browser(trained, browser, scene_cache, tmp_path):
     """nerf-train viewer=live with a browser that connects mid-run, then goes away: the run finishes, within 0.5 dB of

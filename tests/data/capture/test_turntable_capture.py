@@ -45,6 +45,7 @@ def test_without_masks_the_room_keeps_the_photos_from_being_posed_around_the_obj
     assert errors["max_position_error_percent_of_spread"] > 20.0 or errors["max_rotation_error_deg"] > 20.0, errors
 
 
+@pytest.mark.slow  # 600 steps and an evaluation (over a minute): out of CI
 def test_a_turntable_capture_trains_on_its_object_alone_and_is_scored_on_both(tmp_path, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     run = tmp_path / "run"

@@ -20,7 +20,6 @@ from tqdm import tqdm
 from nerf_lightning import __version__
 from nerf_lightning.checkpoints import CHECKPOINT_FORMAT
 from nerf_lightning.io import write_json, write_png
-from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.contract import RendersCamera, implements
 from nerf_lightning.plots import plot_psnr_curves
 from nerf_lightning.video import write_gif
@@ -97,11 +96,13 @@ class Snapshots(TimedCallback):
         super().__init__()  # the clock: validation is not training time
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
-        loss = outputs["loss"] if isinstance(outputs, dict) else outputs
-        if loss is None or trainer.global_step % max(trainer.log_every_n_steps, 1) != 0:  # reading it waits on the device
+        # the PSNR the model logged from its photometric MSE, as TensorBoard shows it: not the total loss, which for
+        # splats (L1 + D-SSIM) and the proposal presets (interlevel and distortion terms) is no MSE
+        psnr = trainer.callback_metrics.get("train/psnr")
+        if psnr is None or trainer.global_step % max(trainer.log_every_n_steps, 1) != 0:  # reading it waits on the device
             return
         self.history["train_step"].append(trainer.global_step)
-        self.history["train_psnr"].append(float(mse_to_psnr(loss.detach().float())))
+        self.history["train_psnr"].append(float(psnr))
         self.history["train_seconds"].append(round(self.clock.seconds(), 4))
 
     def on_validation_batch_end(

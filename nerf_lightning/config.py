@@ -27,7 +27,7 @@ def run_dir_of(ckpt_path: str | Path) -> Path:
 OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path)), replace=True)
 
 
-# Why keys moved, by release (see the README's "Changes" sections)
+# Why keys moved, by release (see CHANGELOG.md)
 OBJECTS_02 = "in nerf-lightning 0.2, when samplers and the scene space became objects"
 VIEWER_03 = "in nerf-lightning 0.3, when the live viewer became a callback"
 

@@ -48,3 +48,26 @@ def procedural_scene(scene_cache):
     from nerf_lightning.data.formats import load_procedural
 
     return load_procedural(cache_dir=scene_cache)
+
+
+# matplotlib's first colours (tab10), in the order a plot's curves take them
+CURVE_COLOURS = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40))
+
+
+def assert_curves_drawn(path: Path, curves: int = 1) -> None:
+    """A PSNR plot (:func:`nerf_lightning.plots.plot_psnr_curves`) that draws ``curves`` curves: a PNG of a figure's
+    size, with each of the first ``curves`` line colours on enough pixels to be a line, and no more curves than that."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    image = iio.imread(path)[..., :3].astype(np.int16)
+    assert image.shape[0] > 200 and image.shape[1] > 300, f"{path}: {image.shape} is no figure"
+
+    def pixels_of(colour):
+        return int((np.abs(image - np.array(colour)).max(axis=-1) < 30).sum())
+
+    for index, colour in enumerate(CURVE_COLOURS):
+        if index < curves:
+            assert pixels_of(colour) > 100, f"{path}: curve {index + 1} (colour {colour}) is not drawn"
+        else:
+            assert pixels_of(colour) < 20, f"{path}: a curve {index + 1} (colour {colour}) is drawn, {curves} expected"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -120,3 +121,29 @@ def test_nerf_train_prints_no_lightning_cloud_adverts(tmp_path):
     output = result.stdout + result.stderr
     assert "GPU available" in output  # Lightning's other info lines still show
     assert "litmodels" not in output and "litlogger" not in output and "💡" not in output
+
+
+# a splat run (0.8 L1 + 0.2 D-SSIM) and a proposal run (interlevel and distortion terms): neither loss is an MSE
+CURVE_RUNS = {
+    "splats": ["experiment=splat_procedural", "data.scene.size=32", "model.random_count=2000", "trainer.max_steps=20"],
+    "proposal": [*(o for o in SMALL_FAST if not o.startswith("model.sampler.")), "model/sampler=proposal", "~model.sampler.grid",
+                 "~model.sampler.step_size",
+                 "model.sampler.proposal_samples=[32,16]", "model.sampler.field_samples=8", "trainer.max_steps=20"],
+}
+
+
+@pytest.mark.parametrize("run", list(CURVE_RUNS))
+def test_the_runs_psnr_curve_is_the_psnr_tensorboard_shows(run, cached_scene, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    train(compose_config([*CURVE_RUNS[run], "trainer.log_every_n_steps=5", "data.val_every=null", "trainer.enable_progress_bar=false",
+                          "trainer.enable_model_summary=false", f"paths.output_dir={tmp_path}"]))
+    history = json.loads((tmp_path / "psnr_history.json").read_text())
+    events = EventAccumulator(str(tmp_path / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    logged = [event.value for event in events.Scalars("train/psnr")]
+    losses = [event.value for event in events.Scalars("train/loss")]
+    assert len(history["train_psnr"]) == len(logged) == 4
+    # the curve's points are the logged PSNRs, the MSE's, and not the PSNR the total loss would give
+    assert history["train_psnr"] == pytest.approx(logged, abs=1e-4)
+    assert all(abs(psnr + 10.0 * math.log10(loss)) > 0.05 for psnr, loss in zip(history["train_psnr"], losses))

@@ -79,16 +79,61 @@ def posing_table(results: list[dict[str, Any]]) -> list[str]:
 
 def scene_table(rows: list[dict[str, Any]]) -> list[str]:
     lines = [
-        "| suite | preset | minutes | steps | s/step | PSNR | SSIM | s/frame (WxH) | samples/ray | machine | date |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
+        "| suite | preset | minutes | steps | s/step | PSNR | SSIM | s/frame (WxH) | samples/ray | machine | date | revision |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|---|",
     ]
     for row in rows:
         lines.append(
             f"| {row['suite']} | {row['preset']} | {row['training_minutes']:g} | {row['steps']} | {_number(row['seconds_per_step'], 3)} "
             f"| {_psnr(row)} | {_number(row['ssim'], 3)} | {_frame(row)} | {_number(row.get('samples_per_ray'), 1)} "
-            f"| {row['machine']['name']} | {row['date'][:10]} |"
+            f"| {row['machine']['name']} | {row['date'][:10]} | {_revision(row)} |"
         )
     return lines
+
+
+def _revision(row: dict[str, Any]) -> str:
+    """The commit the row measured (as of its start), ``–`` where it was not recorded (an installed wheel, or a row of
+    before the runner recorded it at the start)."""
+    return f"`{row['revision']}`" if row.get("revision") else "–"
+
+
+# the README's results table lies between these lines; write_report replaces what is between them
+README_START, README_END = "<!-- results table: nerf-bench report writes it -->", "<!-- end of the results table -->"
+
+
+def readme_table(rows: list[dict[str, Any]], suite: str = "cpu") -> list[str]:
+    """The README's summary: each scene and preset's latest row of ``suite`` (its longest, where there are several)."""
+    latest: dict[tuple[str, str, tuple[str, ...]], dict[str, Any]] = {}
+    for row in rows:
+        if row["suite"] != suite:
+            continue
+        key = (row["scene"], row["preset"], tuple(row.get("overrides") or ()))
+        if key not in latest or (row["minutes"], row["date"]) > (latest[key]["minutes"], latest[key]["date"]):
+            latest[key] = row
+    lines = ["| scene | preset | training minutes | PSNR | SSIM | seconds a frame | machine | date | revision |",
+             "|---|---|---:|---:|---:|---:|---|---|---|"]
+    for row in sorted(latest.values(), key=lambda r: (r["preset"].startswith("splat"), r["scene"], r["preset"])):
+        size = row.get("frame_size")
+        scene = f"{row['scene']} ({size[1]}x{size[0]})" if size else row["scene"]
+        overrides = " ".join(f"`{o}`" for o in row.get("overrides") or ())
+        lines.append(f"| {scene} | `{row['preset']}`{' ' + overrides if overrides else ''} | {row['training_minutes']:g} | {_psnr(row)} "
+                     f"| {_number(row['ssim'], 3)} | {_number(row.get('seconds_per_frame'), 2)} | {row['machine']['name']} "
+                     f"| {row['date'][:10]} | {_revision(row)} |")
+    return lines
+
+
+def write_readme_table(readme: Path, rows: list[dict[str, Any]]) -> bool:
+    """Replace the README's results table (between :data:`README_START` and :data:`README_END`) with
+    :func:`readme_table`; False where ``readme`` does not exist or has no such lines."""
+    if not readme.is_file():
+        return False
+    text = readme.read_text()
+    if README_START not in text or README_END not in text:
+        return False
+    before, rest = text.split(README_START, 1)
+    after = rest.split(README_END, 1)[1]
+    readme.write_text(before + README_START + "\n" + "\n".join(readme_table(rows)) + "\n" + README_END + after)
+    return True
 
 
 def unmeasured(rows: list[dict[str, Any]]) -> list[str]:
@@ -102,8 +147,9 @@ def unmeasured(rows: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def write_report(results_dir: Path, report: Path) -> Path:
-    """Write the results table ``report`` and its plots (``<results_dir>/<scene>.png``) from the results JSONs."""
+def write_report(results_dir: Path, report: Path, readme: Path | None = None) -> Path:
+    """Write the results table ``report`` and its plots (``<results_dir>/<scene>.png``) from the results JSONs, and
+    the summary table of ``readme`` where it has one (:func:`write_readme_table`)."""
     from nerf_lightning.plots import plot_psnr_curves
 
     results_dir, report = Path(results_dir), Path(report)
@@ -144,4 +190,6 @@ def write_report(results_dir: Path, report: Path) -> Path:
         lines += ["## Not measured yet", "", *missing, ""]
     report.parent.mkdir(parents=True, exist_ok=True)
     report.write_text("\n".join(lines).rstrip() + "\n")
+    if readme is not None:
+        write_readme_table(readme, rows)
     return report

@@ -31,6 +31,7 @@ from nerf_lightning.bench.suite import Row, Suite, SuiteError, load_suite, shipp
 
 DEFAULT_RESULTS = Path("docs/results")
 DEFAULT_REPORT = Path("docs/results.md")
+DEFAULT_README = Path("README.md")
 DEFAULT_WORK = Path("outputs/bench")
 # where the real captures are found: --data-dir, else this variable, else the project's shared data folder
 DATA_DIR_VARIABLE = "NERF_LIGHTNING_DATA"
@@ -110,6 +111,7 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[
     """Train, then score every mark, of one row; returns its result (see the module docstring)."""
     from nerf_lightning.bench.machine import provenance
 
+    measured_on = provenance(row.device)  # as the row starts: a commit made while it trains is not what it measured
     root = data_root(row, data_dir)
     run_dir = (work_dir / suite.name / row.slug).resolve()
     arguments = train_arguments(row, run_dir, root.resolve() if root is not None else None)
@@ -150,7 +152,7 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[
             "train": shown("nerf-train", train_arguments(row, shown_run, shown_root)),
             "eval": shown("nerf-eval", eval_arguments(row, last_checkpoint, shown_run / "eval")),
         },
-        **provenance(row.device),
+        **measured_on,
     }
 
 
@@ -166,11 +168,14 @@ def write_results(path: Path, results: dict[str, Any]) -> None:
 
 
 def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, work_dir: Path, resume: bool = False,
-              report: Path | None = DEFAULT_REPORT) -> list[dict[str, Any]]:
+              report: Path | None = DEFAULT_REPORT, readme: Path | None = None, allow_dirty: bool = False) -> list[dict[str, Any]]:
     """Measure ``rows`` of ``suite`` one after another, each written into ``<results_dir>/<suite>.json`` as soon as it
     is measured (replacing that row's earlier result from this machine); rows without their data are skipped with a
-    line. ``resume``: skip rows this machine has measured already. Regenerates ``report`` after each row."""
-    from nerf_lightning.bench.machine import machine
+    line. ``resume``: skip rows this machine has measured already. Regenerates ``report`` (and ``readme``'s table)
+    after each row. A checkout with uncommitted changes is refused unless ``allow_dirty``: a row names the commit it
+    measured, and uncommitted code has none."""
+    from nerf_lightning.bench.machine import machine, source_revision
+
 
     path = results_path(results_dir, suite)
     here = machine(rows[0].device if rows else "cpu")["name"]
@@ -185,6 +190,10 @@ def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, 
         if root is not None and not root.exists():
             print(f"[{row.id}] skipped: {root} not found (--data-dir, or {DATA_DIR_VARIABLE}, names the data folder)", flush=True)
             continue
+        revision = source_revision()
+        if revision is not None and revision.endswith("+dirty") and not allow_dirty:
+            raise BenchmarkError(f"the checkout has uncommitted changes (at {revision}): commit them, so that each row "
+                                 "names the code it measured, or pass --allow-dirty (the rows then say +dirty)")
         result = measure_row(row, suite, data_dir, work_dir)
         results = read_results(path)  # again: another suite run may have written meanwhile
         results["rows"] = [r for r in results["rows"] if not (r["id"] == row.id and r["machine"]["name"] == result["machine"]["name"])]
@@ -194,7 +203,7 @@ def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, 
         print(f"[{row.id}] {result['psnr']:.2f} dB, SSIM {result['ssim']:.3f}, {result['steps']} steps, "
               f"{result['seconds_per_step']:.4f} s a step, {result['seconds_per_frame']:.2f} s a frame -> {path}", flush=True)
         if report is not None:
-            write_report(results_dir, report)
+            write_report(results_dir, report, readme)
     return measured
 
 
@@ -210,9 +219,12 @@ def main(argv: list[str] | None = None) -> None:
     run.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="folder of the suites' results JSONs")
     run.add_argument("--report", type=Path, default=DEFAULT_REPORT, help="the results table regenerated after each row")
     run.add_argument("--work", type=Path, default=DEFAULT_WORK, help="where the runs (checkpoints, logs, renders) go")
+    run.add_argument("--readme", type=Path, default=DEFAULT_README, help="whose results table (between its marker lines) is regenerated too")
+    run.add_argument("--allow-dirty", action="store_true", help="measure a checkout with uncommitted changes (the rows say +dirty)")
     report = commands.add_parser("report", help="regenerate the results table and plots from the results JSONs")
     report.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
     report.add_argument("--report", type=Path, default=DEFAULT_REPORT)
+    report.add_argument("--readme", type=Path, default=DEFAULT_README)
     listing = commands.add_parser("list", help="the suites and their rows")
     listing.add_argument("suite", nargs="?")
     args = parser.parse_args(argv)
@@ -225,11 +237,12 @@ def main(argv: list[str] | None = None) -> None:
                 for row in suite.rows:
                     print(f"  {row.id}  data={row.data or '(built in)'}  marks={', '.join(f'{m:g}' for m in row.marks)}  device={row.device}")
         elif args.command == "report":
-            print(write_report(args.results, args.report))
+            print(write_report(args.results, args.report, args.readme))
         else:
             suite = load_suite(args.suite)
             data_dir = args.data_dir or Path(os.environ.get(DATA_DIR_VARIABLE, DEFAULT_DATA_DIR))
-            run_suite(suite, suite.select(args.only), data_dir, args.results, args.work, args.resume, args.report)
+            run_suite(suite, suite.select(args.only), data_dir, args.results, args.work, args.resume, args.report, args.readme,
+                      args.allow_dirty)
     except (SuiteError, BenchmarkError) as error:
         print(f"nerf-bench: {error}", file=sys.stderr)
         raise SystemExit(2) from None

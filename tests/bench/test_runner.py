@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import assert_curves_drawn
+
 BENCH = [str(Path(sys.executable).parent / "nerf-bench")] if (Path(sys.executable).parent / "nerf-bench").exists() else [
     sys.executable, "-m", "nerf_lightning.bench.runner"]
 
@@ -25,7 +27,10 @@ def quick_row(tmp_path_factory):
     """A suite file's one procedural row (cpu-quick's, shorter), measured once for the module."""
     folder = tmp_path_factory.mktemp("bench")
     (folder / "quick.yaml").write_text("device: cpu\nrows:\n  - {scene: procedural, preset: fast, minutes: 0.25, marks: [0.1, 0.25]}\n")
-    result = bench("run", "quick.yaml", "--only", "procedural/*", "--results", "results", "--report", "results.md", "--work", "work", cwd=folder)
+    (folder / "README.md").write_text("# A project\n\n<!-- results table: nerf-bench report writes it -->\nby hand\n<!-- end of the results table -->\n\nMore.\n")
+    # --allow-dirty: the tests run from a checkout being worked on
+    result = bench("run", "quick.yaml", "--only", "procedural/*", "--results", "results", "--report", "results.md", "--work", "work",
+                   "--readme", "README.md", "--allow-dirty", cwd=folder)
     assert result.returncode == 0, result.stdout + result.stderr
     return folder, result
 
@@ -48,6 +53,8 @@ def test_the_smallest_row_trains_scores_and_writes_its_json(quick_row):
     assert row["commands"]["train"].startswith("nerf-train experiment=fast seed=0")
     assert row["commands"]["bench"] == "nerf-bench run quick.yaml --only procedural/fast/0.25min/seed0"
     assert "Traceback" not in result.stderr
+    # the commit as the row started (this test's checkout may be dirty: --allow-dirty)
+    assert row["revision"] is None or row["revision"].split("+")[0].isalnum()
 
 
 def test_the_results_table_and_plot_are_generated(quick_row):
@@ -55,7 +62,7 @@ def test_the_results_table_and_plot_are_generated(quick_row):
     report = (folder / "results.md").read_text()
     assert "## procedural" in report and "| quick | fast | " in report
     assert "![procedural: held-out PSNR against training minutes](results/procedural.png)" in report
-    assert (folder / "results" / "procedural.png").stat().st_size > 1000
+    assert_curves_drawn(folder / "results" / "procedural.png", curves=1)
     assert "nerf-bench run quick.yaml --only procedural/fast/0.25min/seed0" in report
     # the rows not measured here are listed, with the command that measures them
     assert "## Not measured yet" in report and "`nerf-bench run gpu`" in report
@@ -65,9 +72,29 @@ def test_the_results_table_and_plot_are_generated(quick_row):
     assert (folder / "results.md").read_text() == report
 
 
+def test_the_readmes_table_is_regenerated_between_its_marker_lines(quick_row):
+    folder, _ = quick_row
+    readme = (folder / "README.md").read_text()
+    assert readme.startswith("# A project\n\n") and readme.endswith("<!-- end of the results table -->\n\nMore.\n")
+    assert "by hand" not in readme and "| scene | preset | training minutes | PSNR |" in readme
+
+
+def test_a_checkout_with_uncommitted_changes_is_refused_unless_allowed(tmp_path, monkeypatch):
+    from nerf_lightning.bench import machine, runner
+    from nerf_lightning.bench.suite import load_suite
+
+    monkeypatch.setattr(machine, "source_revision", lambda: "abc1234+dirty")
+    suite_file = tmp_path / "quick.yaml"
+    suite_file.write_text("device: cpu\nrows:\n  - {scene: procedural, preset: fast, minutes: 0.25}\n")
+    suite = load_suite(str(suite_file))
+    with pytest.raises(runner.BenchmarkError, match=r"uncommitted changes \(at abc1234\+dirty\).*--allow-dirty"):
+        runner.run_suite(suite, suite.rows, tmp_path, tmp_path / "results", tmp_path / "work")
+    assert not (tmp_path / "results").exists() and not (tmp_path / "work").exists()
+
+
 def test_resume_skips_a_row_measured_on_this_machine(quick_row):
     folder, _ = quick_row
-    result = bench("run", "quick.yaml", "--only", "procedural/*", "--resume", "--results", "results", "--report", "results.md",
+    result = bench("run", "quick.yaml", "--only", "procedural/*", "--resume", "--allow-dirty", "--results", "results", "--report", "results.md",
                    "--work", "work", cwd=folder)
     assert result.returncode == 0 and "skipped (--resume)" in result.stdout
 

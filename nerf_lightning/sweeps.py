@@ -11,7 +11,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from nerf_lightning.callbacks import history_psnr
+from nerf_lightning.training.callbacks import history_psnr
 from nerf_lightning.io import write_atomic
 from nerf_lightning.plots import plot_psnr_curves
 

@@ -1,6 +1,6 @@
 """The benchmark runner's callbacks: training stopped after a budget of training minutes, and checkpoints kept at
 minute marks for the PSNR-against-minutes curves. Validation time is not counted by either (the training clock of
-:class:`~nerf_lightning.callbacks.TimedCallback`), so every preset gets the same training time however long it
+:class:`~nerf_lightning.training.callbacks.TimedCallback`), so every preset gets the same training time however long it
 validates."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 
 import lightning as L
 
-from nerf_lightning.callbacks import TimedCallback
+from nerf_lightning.training.callbacks import TimedCallback
 from nerf_lightning.devices import synchronize
 from nerf_lightning.io import write_json
 

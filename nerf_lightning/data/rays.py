@@ -58,6 +58,13 @@ class RayDataModule(SceneDataModule):
             if not len(self.drawable):
                 raise ValueError(f"data.masks=exclude: the masks of {self.scene.source or 'the scene'} cover no pixel of the training views")
 
+    def set_rays_per_batch(self, rays: int) -> None:
+        """The rays of the batches drawn from now on (``data.batch_size`` at the start): how a sample budget
+        (:class:`~nerf_lightning.models.ray_budget.RayBudget`) sizes the steps; a batch drawn already keeps its size."""
+        if isinstance(rays, bool) or not isinstance(rays, int) or rays < 1:
+            raise ValueError(f"rays a batch must be an integer >= 1, got {rays!r}")
+        self.batch_size = rays
+
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """``pixel_index`` (N,): pixels drawn uniformly, with replacement, over every training view (with
         ``data.masks=exclude``, over their masked pixels; see the class)."""

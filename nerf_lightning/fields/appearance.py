@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import torch
 
-from nerf_lightning.per_view import PerViewTable
+from nerf_lightning.parameters.per_view import PerViewTable
 
 
 class AppearanceEmbedding(PerViewTable):
-    """``dim`` learnt numbers a training image, sized by :meth:`~nerf_lightning.per_view.PerViewTable.resize` once
+    """``dim`` learnt numbers a training image, sized by :meth:`~nerf_lightning.parameters.per_view.PerViewTable.resize` once
     the data is loaded.
 
     ``forward(camera_indices, n_points)``: (n_points,) long indices of training images -> (n_points, dim); ``None``

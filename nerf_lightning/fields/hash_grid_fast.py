@@ -1,4 +1,4 @@
-"""The hash-grid encoding's fast paths: :func:`~nerf_lightning.fields.hash_grid.encode_reference`'s values, faster.
+"""The hash-grid encoding's fast paths: :func:`~nerf_lightning.fields.hash_grid_reference.encode_reference`'s values, faster.
 
 :func:`choose_path` picks one for a pass from the device, whether gradients are needed, F and the dtype;
 :func:`encode` runs it. Two ways:
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from nerf_lightning.compiling import CompiledOrEager
-from nerf_lightning.fields.hash_grid import cells_of, encode_reference
+from nerf_lightning.fields.hash_grid_reference import cells_of, encode_reference
 
 if TYPE_CHECKING:
     from nerf_lightning.fields.hash_grid import HashGridEncoding

@@ -18,12 +18,12 @@ from __future__ import annotations
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from nerf_lightning.per_view import PerViewTable
+from nerf_lightning.parameters.per_view import PerViewTable
 
 
 class CameraRefinement(PerViewTable):
     """SO3xR3 corrections of the training views' poses (``rows`` (V, 6): rotation vector, translation; zero at the
-    start, sized by :meth:`~nerf_lightning.per_view.PerViewTable.resize`), with L2 penalties that keep them small.
+    start, sized by :meth:`~nerf_lightning.parameters.per_view.PerViewTable.resize`), with L2 penalties that keep them small.
 
     Args:
         lr: the corrections' learning rate (their own optimiser group; nerfstudio: 6e-4).

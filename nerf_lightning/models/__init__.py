@@ -1,7 +1,26 @@
-"""LightningModules: a field, its loss and metrics, and its optimiser."""
+"""LightningModules: a field, its loss and metrics, and its optimiser.
 
-from nerf_lightning.models.image_field import ImageFieldModule
-from nerf_lightning.models.radiance_field import RadianceFieldModule
-from nerf_lightning.models.splat import SplatModule
+The modules load when first asked for (``nerf_lightning.models.SplatModule``, as the configs' ``_target_`` names
+them), so that importing :mod:`~nerf_lightning.models.contract`, which the commands, the outputs and the viewer read
+a model through, loads none of the models.
+"""
 
-__all__ = ["ImageFieldModule", "RadianceFieldModule", "SplatModule"]
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_HOMES = {"ImageFieldModule": "image_field", "RadianceFieldModule": "radiance_field", "SplatModule": "splat"}
+
+__all__ = sorted(_HOMES)
+
+if TYPE_CHECKING:
+    from nerf_lightning.models.image_field import ImageFieldModule
+    from nerf_lightning.models.radiance_field import RadianceFieldModule
+    from nerf_lightning.models.splat import SplatModule
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        return getattr(importlib.import_module(f"nerf_lightning.models.{_HOMES[name]}"), name)
+    raise AttributeError(f"module 'nerf_lightning.models' has no attribute {name!r}")

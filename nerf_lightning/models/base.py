@@ -16,14 +16,14 @@ from torchmetrics import MeanMetric
 from nerf_lightning.errors import NonFiniteLossError
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import image_metrics
-from nerf_lightning.models.parameters import GroupSchedules, check_groups, replace_parameter, resize_to_saved
+from nerf_lightning.parameters.groups import GroupSchedules, check_groups, replace_parameter, resize_to_saved
 
 
 class FieldModule(L.LightningModule):
     """A LightningModule that builds its optimiser and learning-rate scheduler from factories.
 
     The optimiser trains the groups of :meth:`parameter_groups`, each at its own learning rate and schedule if it
-    has them (:mod:`~nerf_lightning.models.parameters`). :meth:`replace_parameter` swaps a parameter for one of
+    has them (:mod:`~nerf_lightning.parameters.groups`). :meth:`replace_parameter` swaps a parameter for one of
     another size, its optimiser state carried row by row; the parameters a model names in
     ``variable_size_parameters`` load from a checkpoint at the size they were saved with.
 
@@ -50,7 +50,7 @@ class FieldModule(L.LightningModule):
         """What the optimiser trains: named groups, ``{"name": str, "params": [...], "lr": float (optional: else the
         optimiser's), "schedule": step -> factor of that lr (optional: else the configured scheduler's)}`` and any
         other option of torch's groups; every trainable parameter in one group
-        (:func:`~nerf_lightning.models.parameters.check_groups`). Here: one group, ``model``, of every parameter."""
+        (:func:`~nerf_lightning.parameters.groups.check_groups`). Here: one group, ``model``, of every parameter."""
         return [{"name": "model", "params": list(self.parameters())}]
 
     def configure_optimizers(self) -> Any:
@@ -70,7 +70,7 @@ class FieldModule(L.LightningModule):
     def replace_parameter(self, owner: nn.Module, name: str, value: torch.Tensor, rows_from: torch.Tensor | None = None) -> nn.Parameter:
         """Set ``owner.<name>`` to a new parameter holding ``value`` (any size), in the old one's place in the
         optimiser if it is built, its state (Adam's moments) taken row by row as ``rows_from`` (N_new,) says: the old
-        row for each new row, or -1 for zeros. See :func:`~nerf_lightning.models.parameters.replace_parameter`."""
+        row for each new row, or -1 for zeros. See :func:`~nerf_lightning.parameters.groups.replace_parameter`."""
         optimizers = self._trainer.optimizers if self._trainer is not None else []
         return replace_parameter(owner, name, value, optimizers, rows_from)
 

@@ -86,7 +86,7 @@ class RadianceFieldModule(SceneModule):
                              "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
                              "depend on the data, so each would compile anew")
         self.rays_that_fit: torch.Tensor | None = None
-        self.ray_count_varies = False  # set by callbacks.RayBudget
+        self.ray_count_varies = False  # see vary_ray_count
         # the function, not the bound method: a copy of the module would otherwise run this one's step
         self.compiled_step = CompiledOrEager(type(self).step_losses, "the training step", fullgraph=True, dynamic=None,
                                              mode=compile_mode) if compile else None
@@ -222,18 +222,27 @@ class RadianceFieldModule(SceneModule):
             return Overlay("Occupied cells", "points", centres, (240, 120, 30), size) if len(centres) else None
         raise ValueError(f"{type(self).__name__} has no overlay '{name}': it has {', '.join(self.overlay_names()) or 'none'}")
 
+    def vary_ray_count(self) -> None:
+        """The rays a step will vary from step to step (a sample budget, :class:`~nerf_lightning.models.ray_budget.RayBudget`):
+        a compiled step then traces one graph for any ray count instead of one a count. Refused in one line where
+        the sampler has no fixed capacity to fill."""
+        if getattr(self.sampler, "capacity", None) is None:
+            raise ValueError("callbacks.ray_budget sizes the rays a step to an occupancy grid's model.sampler.capacity, and this "
+                             "model has none: set one (as experiment=fast_blender_gpu does), or remove the callback")
+        self.ray_count_varies = True
+
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)  # a grid refresh: outside the compiled graph, on its own steps
         if self.compiled_step is None:
             terms = self.step_losses(batch)
         else:
-            if self.ray_count_varies:  # one graph for every ray count (callbacks.RayBudget), not one compiled per count
+            if self.ray_count_varies:  # one graph for every ray count (models.ray_budget.RayBudget), not one compiled per count
                 for value in batch.values():
                     if isinstance(value, torch.Tensor):
                         torch._dynamo.maybe_mark_dynamic(value, 0)
             terms = self.compiled_step(self, batch)
         loss = terms.pop("loss")
-        # the rays a fixed-capacity sampler would have held whole (callbacks.RayBudget sizes later steps by it), or None
+        # the rays a fixed-capacity sampler would have held whole (models.ray_budget.RayBudget sizes later steps by it), or None
         self.rays_that_fit = terms.get("rays_that_fit")
         self.log("train/samples_per_ray", terms.pop("samples_per_ray"), on_step=True)  # tensors: not read back here
         self.log("train/psnr", mse_to_psnr(terms.pop("mse")), on_step=True)

@@ -21,7 +21,7 @@ from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import SceneModule
-from nerf_lightning.per_view import PerViewTable
+from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project

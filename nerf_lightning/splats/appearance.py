@@ -25,13 +25,13 @@ from __future__ import annotations
 
 import torch
 
-from nerf_lightning.per_view import PerViewTable
+from nerf_lightning.parameters.per_view import PerViewTable
 
 
 class ViewColourAffine(PerViewTable):
     """An affine colour transform for each training view (``rows`` (V, 12): ``A`` (3x3, row-major, an offset from
     the identity), then ``b`` (3,); zero at the start, sized by
-    :meth:`~nerf_lightning.per_view.PerViewTable.resize`; a view gets its row less the rows' mean), with an L2
+    :meth:`~nerf_lightning.parameters.per_view.PerViewTable.resize`; a view gets its row less the rows' mean), with an L2
     penalty that keeps each near the identity.
 
     ``forward(rgb, camera_index, accumulation, background)``: a training view's rendered colours -> the colours its

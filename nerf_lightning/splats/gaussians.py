@@ -3,7 +3,7 @@ logits and spherical-harmonic colours (``sh0``: degree 0; ``shN``: the higher ba
 
 Every parameter changes size in training (densification): they are the module's ``variable_size_parameters``, so a
 checkpoint loads at the size it was saved with, and a strategy edits them only through :meth:`Gaussians.edit`,
-which keeps the optimiser's state in step (:func:`~nerf_lightning.models.parameters.replace_parameter`).
+which keeps the optimiser's state in step (:func:`~nerf_lightning.parameters.groups.replace_parameter`).
 """
 
 from __future__ import annotations

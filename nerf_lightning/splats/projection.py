@@ -35,6 +35,11 @@ NEAR_PLANE = 0.01
 MAX_SIGMAS = 3.0
 # the smallest opacity a pixel is given by a Gaussian (3DGS's and gsplat's 1/255): fainter pairs are skipped
 MIN_ALPHA = 1.0 / 255.0
+# the most opacity a footprint gives a pixel (3DGS's 0.99, gsplat's 0.999): never fully opaque, so that the backward
+# pass can divide by 1 - alpha
+MAX_ALPHA = 0.999
+# a pixel whose transmittance would fall to this or below takes no more footprints (3DGS's early stop)
+MIN_TRANSMITTANCE = 1e-4
 
 
 def covariances(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:

@@ -15,8 +15,7 @@ from __future__ import annotations
 import torch
 
 from nerf_lightning.rendering.compositing import weights_from_alpha_packed
-from nerf_lightning.splats.projection import MIN_ALPHA, Projection
-from nerf_lightning.splats.rasterize_dense import MAX_ALPHA, MIN_TRANSMITTANCE
+from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
 
 # pairs drawn at once: about 0.4 GB with gradients (the budget a view's bands are cut to)
 MAX_PAIRS = 4_000_000

@@ -17,11 +17,7 @@ from __future__ import annotations
 import torch
 
 from nerf_lightning.rendering.compositing import weights_from_alpha
-from nerf_lightning.splats.projection import MIN_ALPHA, Projection
-
-MAX_ALPHA = 0.999
-# a pixel whose transmittance would fall to this or below takes no more footprints (3DGS's early stop)
-MIN_TRANSMITTANCE = 1e-4
+from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
 
 
 def rasterize_dense(projection: Projection, colours: torch.Tensor, height: int, width: int,

@@ -37,9 +37,8 @@ import numba
 import numpy as np
 import torch
 
-from nerf_lightning.splats.projection import MIN_ALPHA, Projection
+from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
 from nerf_lightning.splats.rasterize import pixel_boxes
-from nerf_lightning.splats.rasterize_dense import MAX_ALPHA, MIN_TRANSMITTANCE
 
 # a tile's side in pixels (3DGS's and gsplat's 16)
 TILE = 16

@@ -6,7 +6,7 @@ renders each frame through the model's one method, ``model.render_view``
 (:class:`~nerf_lightning.models.contract.RendersCamera`), stopping it when the camera moves on.
 
 Rendering happens in one thread, one frame a call of :meth:`FieldViewer.render_next`: nerf-view loops on it
-(:meth:`FieldViewer.serve_forever`); during training :class:`~nerf_lightning.callbacks.LiveViewer` calls it between
+(:meth:`FieldViewer.serve_forever`); during training :class:`~nerf_lightning.viz.live.LiveViewer` calls it between
 steps, within a share of the training time, so that the model is never rendered while the optimiser changes it.
 
 A model of Gaussians (:class:`~nerf_lightning.models.contract.HasGaussians`) is drawn by the browser itself, as splats

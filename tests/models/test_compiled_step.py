@@ -14,7 +14,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 
 from nerf_lightning import compiling
-from nerf_lightning.callbacks import RayBudget
+from nerf_lightning.models.ray_budget import RayBudget
 from nerf_lightning.config import compose_config
 from nerf_lightning.models import radiance_field
 

@@ -45,7 +45,7 @@ def test_a_refinement_keeps_every_optimiser_state_the_size_of_its_parameter():
     optimizer.step()
 
     def replace(owner, name, value, rows_from):
-        from nerf_lightning.models.parameters import replace_parameter
+        from nerf_lightning.parameters.groups import replace_parameter
 
         return replace_parameter(owner, name, value, [optimizer], rows_from)
 
@@ -78,7 +78,7 @@ def test_opacities_are_reset_with_their_optimiser_state():
     optimizer = torch.optim.Adam([getattr(g, name) for name in PARAMETERS], lr=1e-3)
     (sum(getattr(g, name).sum() for name in PARAMETERS)).backward()
     optimizer.step()
-    from nerf_lightning.models.parameters import replace_parameter
+    from nerf_lightning.parameters.groups import replace_parameter
 
     DefaultStrategy(reset_every=5).after_step(g, step=5, replace=lambda o, n, v, r: replace_parameter(o, n, v, [optimizer], r))
     assert float(torch.sigmoid(g.opacity_logits.detach()).max()) == pytest.approx(0.01, rel=1e-4)

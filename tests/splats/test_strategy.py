@@ -10,7 +10,7 @@ import lightning as L
 import pytest
 import torch
 
-from nerf_lightning.models.parameters import replace_parameter
+from nerf_lightning.parameters.groups import replace_parameter
 from nerf_lightning.splats.gaussians import PARAMETERS
 from nerf_lightning.splats.projection import Projection
 from nerf_lightning.splats.strategy import DefaultStrategy, MCMCStrategy, relocation

@@ -287,7 +287,7 @@ def test_the_viewer_renders_through_render_view_and_drops_a_moved_frame(server, 
 def test_viewer_live_composes_into_the_callbacks_and_the_old_keys_name_the_new_ones(tmp_path):
     cfg = compose_config(["experiment=fast", "viewer=live", "callbacks.viewer.port=9123", f"paths.output_dir={tmp_path}"])
     viewer = cfg.callbacks.viewer
-    assert viewer._target_ == "nerf_lightning.callbacks.LiveViewer"
+    assert viewer._target_ == "nerf_lightning.viz.live.LiveViewer"
     assert (viewer.host, viewer.port, viewer.time_share, viewer.output_dir) == ("127.0.0.1", 9123, 0.1, str(tmp_path))
     assert {"best_checkpoint", "last_checkpoint", "snapshots"} <= set(cfg.callbacks)  # added to the others
     assert "viewer" not in compose_config(["experiment=fast", f"paths.output_dir={tmp_path}"]).callbacks
@@ -315,7 +315,7 @@ def test_the_live_viewer_refuses_a_model_that_renders_no_camera(tmp_path):
     pytest.importorskip("viser")
     from types import SimpleNamespace
 
-    from nerf_lightning.callbacks import LiveViewer
+    from nerf_lightning.viz.live import LiveViewer
     from nerf_lightning.training import train
 
     callback = LiveViewer(port=free_port(), output_dir=tmp_path)
@@ -342,7 +342,7 @@ class _FakeViewer:
 
 
 def _live_viewer(tmp_path, viewer, stopped=None):
-    from nerf_lightning.callbacks import LiveViewer
+    from nerf_lightning.viz.live import LiveViewer
 
     callback = LiveViewer(port=free_port(), output_dir=tmp_path)
     callback.viewer = viewer

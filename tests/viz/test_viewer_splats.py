@@ -200,7 +200,7 @@ def test_a_large_model_sends_its_most_opaque_gaussians_and_says_how_many(server,
 def test_the_live_view_sends_the_splats_again_as_they_train(server, procedural_scene, make_config, tmp_path):
     """Every ``splats_every_s`` of wall time while a browser watches: new splats after the model changed (here its
     count), nothing when no step was taken, nothing before the time is up."""
-    from nerf_lightning.callbacks import LiveViewer
+    from nerf_lightning.viz.live import LiveViewer
     from nerf_lightning.viz.viewer import FieldViewer
 
     train = procedural_scene.train

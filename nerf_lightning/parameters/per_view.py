@@ -7,13 +7,15 @@ from typing import Any
 import torch
 from torch import nn
 
+from nerf_lightning.parameters.groups import resize_to_saved
+
 
 class PerViewTable(nn.Module):
     """A learnt (V, width) table ``rows``, one row a training view.
 
     V is known once the data is loaded: :meth:`resize` sets it (the radiance-field module does, in ``setup``, before
     the optimiser is built), and a checkpoint's table loads at the size it was saved with (``rows`` is a variable-size
-    parameter, :mod:`~nerf_lightning.models.parameters`: a model sizes it in ``on_load_checkpoint``, and a table
+    parameter, :mod:`~nerf_lightning.parameters.groups`: a model sizes it in ``on_load_checkpoint``, and a table
     loaded on its own does here).
 
     Args:
@@ -49,7 +51,5 @@ class PerViewTable(nn.Module):
                              f"{type(self).__name__}" + ("" if self.rows.shape[0] else ": resize(n_training_views) first"))
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
-        from nerf_lightning.models.parameters import resize_to_saved  # (here: nerf_lightning.models imports this module)
-
         resize_to_saved(self, state_dict, prefix)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

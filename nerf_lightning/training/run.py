@@ -12,7 +12,7 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from nerf_lightning.callbacks import RunConfigInCheckpoint, StepProgressBar
+from nerf_lightning.training.callbacks import RunConfigInCheckpoint, StepProgressBar
 from nerf_lightning.checkpoints import checkpoint_globals, read_checkpoint
 from nerf_lightning.devices import enable_tf32, peak_memory_gb
 from nerf_lightning.errors import ensure_writable

@@ -17,7 +17,7 @@ hand ``<root>/<FOLDER>`` (masks) to the command (``masks=``). The published pose
 ``<root>/poses_bounds.npy`` (LLFF: a row a photo in name order). The results table's
 posing rows are these JSONs: ``--out docs/results/posing/<name>.json``, then ``nerf-bench report``.
 
-The command's own settings (:func:`nerf_lightning.data.capture.process_capture`): one shared OPENCV camera, features
+The command's own settings (:func:`nerf_lightning.capture.process_capture`): one shared OPENCV camera, features
 read at ``--max-size`` px on the long side (1600), 8192 SIFT features an image, exhaustive matching (under 100
 images), ``--mapper`` (auto: both mappers, the model that explains more verified matches kept), seed 0. The photos are
 ``<root>/<--images>`` (``--photos N``: N of them, evenly spaced by name, for a quick run); the capture is written to ``--work`` (a temporary folder by default). Position errors are
@@ -52,8 +52,8 @@ from nerf_lightning.io import write_json
 
 def mappers_over_seeds(images: Path, reference: Path, seeds: list[int], work: Path, max_size: int) -> list[dict]:
     """For each seed: the matches verified with that RANSAC seed, then each mapper, compared with ``reference``."""
-    from nerf_lightning.data.capture import compare_with_reference
-    from nerf_lightning.data.capture.colmap import (
+    from nerf_lightning.capture import compare_with_reference
+    from nerf_lightning.capture.colmap import (
         colmap_log, exhaustive_pairs, extract_features, map_images, match_features, reconstruction_to_transforms,
         verified_matches_explained,
     )
@@ -125,7 +125,7 @@ def main() -> None:
 
     import pycolmap
 
-    from nerf_lightning.data.capture import compare_with_reference, process_capture
+    from nerf_lightning.capture import compare_with_reference, process_capture
 
     with temporary:
         temporary = temporary.name

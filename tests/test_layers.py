@@ -15,7 +15,7 @@ LAYERS = [
     {"", "errors", "io", "compiling", "devices", "metrics", "config", "parameters", "conf"},
     {"plots", "video", "syncs", "geometry", "checkpoints"},
     {"data", "fields"},
-    {"rendering", "splats"},
+    {"rendering", "splats", "capture"},
     {"models"},
     {"training", "outputs"},
     {"viz"},

@@ -31,10 +31,10 @@ RENDER_PATHS = ("test", "orbit", "spiral")  # as nerf_lightning.data's render pa
 EXPORT_FORMATS = ("ply", "obj", "glb")  # the names of nerf_lightning.outputs.export.EXPORT_FORMATS (a test holds them equal)
 MESH_FRAMES = ("capture", "scene")
 VIZ_BACKENDS = ("png", "viser")
-MATCHERS = ("auto", "exhaustive", "sequential")  # as nerf_lightning.data.capture.colmap
+MATCHERS = ("auto", "exhaustive", "sequential")  # as nerf_lightning.capture.colmap
 MAPPERS = ("auto", "global", "incremental")
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
-MASK_OBJECTS = ("white", "black")  # as nerf_lightning.data.capture.images
+MASK_OBJECTS = ("white", "black")  # as nerf_lightning.capture.images
 SEED_RANGE = (0, 2**32 - 1)  # what Lightning's seed_everything and numpy take
 PROCEDURAL_MIN_VIEWS = 10  # as nerf_lightning.data.formats.procedural.make_procedural_scene
 

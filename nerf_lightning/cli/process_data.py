@@ -1,5 +1,5 @@
 """nerf-process-data: a folder of photos or a video posed with COLMAP (pycolmap, in-process) into a capture that
-nerf-train reads (:func:`nerf_lightning.data.capture.process_capture`), and its report printed; with masks=<folder>,
+nerf-train reads (:func:`nerf_lightning.capture.process_capture`), and its report printed; with masks=<folder>,
 a mask a photo, COLMAP matches the object alone and the masks are written beside the images."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from nerf_lightning.errors import report_errors
 def process(cfg: DictConfig) -> dict:
     check_process_data_keys(cfg)
     # imported here, not at the top: a wrong key is answered before torch and Lightning load (seconds)
-    from nerf_lightning.data.capture import process_capture
+    from nerf_lightning.capture import process_capture
 
     return process_capture(cfg.input, cfg.output, frames=cfg.frames, matcher=cfg.matcher, mapper=cfg.mapper, camera_model=cfg.camera_model,
                            single_camera=cfg.single_camera, max_size=cfg.max_size, max_features=cfg.max_features,
@@ -27,7 +27,7 @@ def process(cfg: DictConfig) -> dict:
 @report_errors("nerf-process-data")
 def main(cfg: DictConfig) -> None:
     result = process(cfg)  # first: its keys are checked before torch loads
-    from nerf_lightning.data.capture import format_report
+    from nerf_lightning.capture import format_report
 
     print(format_report(result))
 

@@ -205,8 +205,8 @@ def test_the_name_lists_agree_with_the_library():
     """keys.py repeats the names of modules that load torch; they must stay the same."""
     import torch
 
-    from nerf_lightning.data.capture.colmap import CAMERA_MODELS, MAPPERS, MATCHERS
-    from nerf_lightning.data.capture.images import MASK_OBJECTS
+    from nerf_lightning.capture.colmap import CAMERA_MODELS, MAPPERS, MATCHERS
+    from nerf_lightning.capture.images import MASK_OBJECTS
     from nerf_lightning.data.scene_data import RENDER_PATHS
     from nerf_lightning.devices import DEVICE_CHOICES
     from nerf_lightning.outputs.export import EXPORT_FORMATS

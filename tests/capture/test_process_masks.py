@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from nerf_lightning.data.capture.images import find_masks, mask_name, read_mask
-from tests.data.capture.test_process_data import assert_nothing_written, needs_pycolmap, one_error_line, process_data
+from nerf_lightning.capture.images import find_masks, mask_name, read_mask
+from tests.capture.test_process_data import assert_nothing_written, needs_pycolmap, one_error_line, process_data
 
 SIZE = (161, 121)  # (width, height): odd, so that images_<k> and masks_<k> crop a remainder
 
@@ -77,8 +77,8 @@ def save_masks(folder: Path, photos: Path, kind: str = "white", size: tuple[int,
 def stage(photos: Path, masks: Path, staging: Path, mask_object: str = "white", downscales=(2, 4)) -> tuple[dict, dict]:
     """photos and masks written into ``staging`` as process_capture writes them: the images' sizes and the masks'
     object fractions, by image name."""
-    from nerf_lightning.data.capture.images import find_images
-    from nerf_lightning.data.capture.process import write_masks, write_photos
+    from nerf_lightning.capture.images import find_images
+    from nerf_lightning.capture.process import write_masks, write_photos
 
     paths = find_images(photos)
     sizes = write_photos(paths, staging, downscales, progress=False)
@@ -136,7 +136,7 @@ ERRORS = {
 @needs_pycolmap
 @pytest.mark.parametrize("case", list(ERRORS))
 def test_bad_masks_stop_in_one_line_naming_the_file(tmp_path, case):
-    from nerf_lightning.data.capture import process_capture
+    from nerf_lightning.capture import process_capture
 
     photos = object_photos(tmp_path / "photos")
     masks = save_masks(tmp_path / "masks", photos)
@@ -209,7 +209,7 @@ def test_masks_are_written_full_size_and_lined_up_with_the_smaller_images(tmp_pa
 
 
 def test_masks_are_turned_upright_by_their_exif_orientation_as_the_photos_are(tmp_path):
-    from nerf_lightning.data.capture.process import write_masks, write_photos
+    from nerf_lightning.capture.process import write_masks, write_photos
 
     stored = np.zeros((40, 80), bool)  # 80 wide, 40 high as stored; the object at the stored top left
     stored[:10, :20] = True
@@ -266,8 +266,8 @@ def synthetic_model(names: list[str], size: tuple[int, int]):
 
 @needs_pycolmap
 def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_path, monkeypatch):
-    import nerf_lightning.data.capture.process as process
-    from nerf_lightning.data.capture import format_report, process_capture
+    import nerf_lightning.capture.process as process
+    from nerf_lightning.capture import format_report, process_capture
 
     photos = object_photos(tmp_path / "photos", count=4)
     masks = save_masks(tmp_path / "masks", photos, "black")
@@ -310,7 +310,7 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
 
 @needs_pycolmap
 def test_masks_inside_the_output_they_would_be_replaced_by_are_refused(tmp_path):
-    from nerf_lightning.data.capture import process_capture
+    from nerf_lightning.capture import process_capture
 
     photos = object_photos(tmp_path / "photos")
     masks = save_masks(tmp_path / "out" / "masks", photos)
@@ -330,7 +330,7 @@ def test_colmap_keeps_only_the_keypoints_inside_the_masks(tmp_path, max_size):
     ``max_size``; without the masks, many lie outside."""
     import pycolmap
 
-    from nerf_lightning.data.capture.colmap import colmap_log, extract_features
+    from nerf_lightning.capture.colmap import colmap_log, extract_features
 
     size = (320, 240)
     photos = textured_photos(tmp_path / "photos", size=size)
@@ -362,8 +362,8 @@ def test_colmap_keeps_only_the_keypoints_inside_the_masks(tmp_path, max_size):
 @needs_pycolmap
 @pytest.mark.parametrize("escalate", [True, False])
 def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_and_says_so(tmp_path, monkeypatch, escalate):
-    import nerf_lightning.data.capture.process as process
-    from nerf_lightning.data.capture import format_report, process_capture
+    import nerf_lightning.capture.process as process
+    from nerf_lightning.capture import format_report, process_capture
 
     photos = object_photos(tmp_path / "photos", count=6)
     masks = save_masks(tmp_path / "masks", photos)
@@ -391,7 +391,7 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
 
 
 def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_the_photos():
-    from nerf_lightning.data.capture.process import escalated_settings
+    from nerf_lightning.capture.process import escalated_settings
 
     assert escalated_settings(1600, 8192, {"a": (4000, 4000)}) == {"max_size": 3200, "max_features": 16384, "strong": True}
     assert escalated_settings(1600, 8192, {"a": (2400, 1800)})["max_size"] == 2400

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from nerf_lightning.data.capture.images import write_capture_image
+from nerf_lightning.capture.images import write_capture_image
 from nerf_lightning.errors import MissingExtraError
 from tests.conftest import SHARED_DATA
 
@@ -70,7 +70,7 @@ def fox_photos(folder: Path, names: list[str], factor: int = 4) -> Path:
 
 
 def test_a_missing_colmap_extra_names_the_install_line(tmp_path, monkeypatch):
-    from nerf_lightning.data.capture import process_capture
+    from nerf_lightning.capture import process_capture
 
     monkeypatch.setitem(sys.modules, "pycolmap", None)  # import pycolmap now raises ImportError
     with pytest.raises(MissingExtraError, match=r'pip install -c constraints-cpu.txt -e "\.\[colmap\]"'):
@@ -80,7 +80,7 @@ def test_a_missing_colmap_extra_names_the_install_line(tmp_path, monkeypatch):
 
 @needs_pycolmap
 def test_an_empty_folder_and_a_missing_input_are_named(tmp_path):
-    from nerf_lightning.data.capture import process_capture
+    from nerf_lightning.capture import process_capture
 
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "notes.txt").write_text("no photos here")
@@ -96,7 +96,7 @@ def test_an_empty_folder_and_a_missing_input_are_named(tmp_path):
 
 @needs_pycolmap
 def test_unreadable_images_are_named_and_nothing_is_left_behind(tmp_path):
-    from nerf_lightning.data.capture import process_capture
+    from nerf_lightning.capture import process_capture
 
     photos = noise_photos(tmp_path / "photos", count=3)
     (photos / "broken.jpg").write_bytes(b"\xff\xd8\xff\xe0 this is not a JPEG")
@@ -108,7 +108,7 @@ def test_unreadable_images_are_named_and_nothing_is_left_behind(tmp_path):
 
 @needs_pycolmap
 def test_images_of_two_sizes_need_a_camera_each(tmp_path):
-    from nerf_lightning.data.capture import process_capture
+    from nerf_lightning.capture import process_capture
 
     photos = noise_photos(tmp_path / "photos", count=3)
     Image.new("RGB", (120, 160)).save(photos / "portrait.jpg")
@@ -129,7 +129,7 @@ def test_photos_that_do_not_register_fail_in_one_line_with_exit_2(tmp_path):
 
 
 def test_too_few_registered_name_the_images_left_out_and_what_to_change():
-    from nerf_lightning.data.capture.process import check_registered
+    from nerf_lightning.capture.process import check_registered
 
     names = [f"IMG_{index}.jpg" for index in range(10)]
     with pytest.raises(ValueError, match=r"registered only 2 of the 10 .*IMG_0\.jpg, IMG_1\.jpg"):
@@ -169,8 +169,8 @@ def test_the_sharpest_frame_of_each_stretch_of_a_video_is_written(tmp_path):
     pytest.importorskip("imageio_ffmpeg", reason="imageio-ffmpeg (the video extra) is not installed")
     import imageio.v3 as iio
 
-    from nerf_lightning.data.capture.process import write_video_frames
-    from nerf_lightning.data.capture.video import laplacian_variance
+    from nerf_lightning.capture.process import write_video_frames
+    from nerf_lightning.capture.video import laplacian_variance
 
     generator = np.random.default_rng(0)
     texture = generator.integers(0, 256, (64, 96, 3)).astype(np.float32)
@@ -189,7 +189,7 @@ def test_the_sharpest_frame_of_each_stretch_of_a_video_is_written(tmp_path):
 
 
 def test_video_frames_are_spread_over_the_clip():
-    from nerf_lightning.data.capture.video import stretches
+    from nerf_lightning.capture.video import stretches
 
     assert stretches(10, 3).tolist() == [0, 0, 0, 0, 1, 1, 1, 2, 2, 2]
     assert stretches(4, 10).tolist() == [0, 1, 2, 3]  # fewer frames than asked: every frame
@@ -202,7 +202,7 @@ def test_video_frames_are_spread_over_the_clip():
 @needs_fox
 @pytest.mark.parametrize("mapper", ["auto", "incremental"])
 def test_ten_fox_photos_are_posed_as_published(tmp_path, mapper):
-    from nerf_lightning.data.capture import compare_with_reference
+    from nerf_lightning.capture import compare_with_reference
     from nerf_lightning.data.formats import load_transforms
 
     photos = fox_photos(tmp_path / "photos", FOX_NEIGHBOURS)
@@ -243,7 +243,7 @@ def test_ten_fox_photos_are_posed_as_published(tmp_path, mapper):
 @needs_pycolmap
 @needs_fox
 def test_all_fifty_fox_photos_are_posed_within_one_percent_and_one_degree(tmp_path):
-    from nerf_lightning.data.capture import compare_with_reference, process_capture
+    from nerf_lightning.capture import compare_with_reference, process_capture
 
     report = process_capture(FOX / "images", tmp_path / "fox", progress=False)
     assert report["images_given"] == 50 and report["registered"] >= 48

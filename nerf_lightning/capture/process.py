@@ -29,7 +29,7 @@ import trimesh
 from PIL import Image
 from tqdm import tqdm
 
-from nerf_lightning.data.capture.colmap import (
+from nerf_lightning.capture.colmap import (
     CAMERA_MODELS,
     MAPPERS,
     MATCHERS,
@@ -41,7 +41,7 @@ from nerf_lightning.data.capture.colmap import (
     registered_names,
     sparse_points,
 )
-from nerf_lightning.data.capture.images import (
+from nerf_lightning.capture.images import (
     MASK_OBJECTS,
     find_images,
     find_masks,
@@ -53,7 +53,7 @@ from nerf_lightning.data.capture.images import (
     write_capture_mask,
     write_downscaled,
 )
-from nerf_lightning.data.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
+from nerf_lightning.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
 from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_atomic, write_json
 

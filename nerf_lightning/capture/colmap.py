@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nerf_lightning.data.capture.images import exif_focal_length, mask_name, natural_key
+from nerf_lightning.capture.images import exif_focal_length, mask_name, natural_key
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 
@@ -149,7 +149,7 @@ FOCAL_PRIOR_TOLERANCE = 0.05
 
 def correct_focal_priors(database: Path, images: Path) -> list[dict[str, Any]]:
     """Each camera of ``database`` given the focal length of its first image's EXIF read for the image as it is
-    (:func:`~nerf_lightning.data.capture.images.exif_focal_length`) where COLMAP's own reading differs from it by more
+    (:func:`~nerf_lightning.capture.images.exif_focal_length`) where COLMAP's own reading differs from it by more
     than :data:`FOCAL_PRIOR_TOLERANCE`: COLMAP takes a downscaled or cropped photo's EXIF as if for its full frame
     (on moldGoldCape's 912 px copies 7558 px instead of 1890, and its incremental mapper then registered 2 of 59;
     the two-view geometries, checked as calibrated, suffer too). Before matching, so that the matches are verified

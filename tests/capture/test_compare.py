@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerf_lightning.data.capture import compare_with_reference
+from nerf_lightning.capture import compare_with_reference
 from nerf_lightning.data.formats.llff import write_poses_bounds
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 from PIL import Image
 
-from nerf_lightning.data.capture.images import (
+from nerf_lightning.capture.images import (
     EXIF_IFD,
     FOCAL_LENGTH,
     FOCAL_LENGTH_35MM,
@@ -17,7 +17,7 @@ from nerf_lightning.data.capture.images import (
     PIXEL_Y,
     exif_focal_length,
 )
-from tests.data.capture.test_process_data import needs_pycolmap
+from tests.capture.test_process_data import needs_pycolmap
 
 # a 5472x3648 sensor, 18 mm lens, 10 584 pixels an inch on the focal plane: 7500 px at full frame
 FULL_FRAME = {FOCAL_LENGTH: 18.0, FOCAL_PLANE_X_RESOLUTION: 10583.333333, FOCAL_PLANE_UNIT: 2, PIXEL_X: 5472, PIXEL_Y: 3648}
@@ -51,7 +51,7 @@ def test_the_35mm_equivalent_is_read_where_the_focal_plane_is_not_and_no_exif_gi
 
 @needs_pycolmap
 def test_the_cameras_focal_length_is_set_from_the_photos_own_pixels_before_matching(tmp_path):
-    from nerf_lightning.data.capture.colmap import extract_features, import_pycolmap
+    from nerf_lightning.capture.colmap import extract_features, import_pycolmap
 
     images = tmp_path / "images"
     images.mkdir()

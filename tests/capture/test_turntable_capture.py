@@ -8,10 +8,10 @@ import json
 
 import pytest
 
-from nerf_lightning.data.capture import compare_with_reference
+from nerf_lightning.capture import compare_with_reference
 from nerf_lightning.data.formats import make_turntable_capture
 from tests.conftest import run_cli
-from tests.data.capture.test_process_data import needs_pycolmap, process_data
+from tests.capture.test_process_data import needs_pycolmap, process_data
 
 
 @pytest.fixture(scope="module")

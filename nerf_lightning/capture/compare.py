@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from nerf_lightning.data.capture.images import IMAGE_SUFFIXES, natural_key
+from nerf_lightning.capture.images import IMAGE_SUFFIXES, natural_key
 from nerf_lightning.data.formats.llff import read_poses_bounds
 from nerf_lightning.geometry.alignment import camera_pose_errors
 

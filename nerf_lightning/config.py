@@ -30,6 +30,7 @@ OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path))
 # Why keys moved, by release (see CHANGELOG.md)
 OBJECTS_02 = "in nerf-lightning 0.2, when samplers and the scene space became objects"
 VIEWER_03 = "in nerf-lightning 0.3, when the live viewer became a callback"
+MODES_04 = "after nerf-lightning 0.3, when the renderer's two modes became two renderers"
 
 # Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
@@ -58,6 +59,12 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
             # Hydra takes a config group's choice as a name, and true is not one
             return (f"'viewer={value}' was replaced {VIEWER_03} (see the README): use viewer=live for the live view, "
                     "or leave viewer out for none")
+        if key == "model.renderer.fixed_shapes":
+            return (f"'{key}' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=table for a step of fixed "
+                    "shapes, model/renderer=rounds for rounds")
+        if key == "model/renderer" and value.strip() == "volume":
+            return (f"'model/renderer=volume' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=rounds "
+                    "(its keys are the same), or model/renderer=table for a step of fixed shapes")
         for old, (new, note, why) in RENAMED_KEYS.items():
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")

@@ -17,7 +17,8 @@ from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.base import SceneModule
 from nerf_lightning.models.contract import Overlay
-from nerf_lightning.rendering.renderer import VolumeRenderer
+from nerf_lightning.rendering.renderer import Renderer
+from nerf_lightning.rendering.rounds import RoundsRenderer
 from nerf_lightning.rendering.samplers.base import RaySampler
 
 
@@ -40,7 +41,7 @@ class RadianceFieldModule(SceneModule):
         sampler: where along each ray the field is evaluated (:class:`~nerf_lightning.rendering.samplers.base.RaySampler`).
         optimizer, scheduler: see :class:`~nerf_lightning.models.base.FieldModule`; they train the field and
             whatever the sampler learns by gradient (a coarse network, proposal networks).
-        renderer: the :class:`~nerf_lightning.rendering.renderer.VolumeRenderer` (its early stop and round size).
+        renderer: a :class:`~nerf_lightning.rendering.renderer.Renderer` (``model/renderer=rounds|table``).
         chunk_size: rays rendered at once in evaluation, so memory stays bounded at any resolution.
         camera_refinement: learn a pose correction for each training view
             (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`, its own learning rate, its penalties
@@ -66,7 +67,7 @@ class RadianceFieldModule(SceneModule):
         sampler: RaySampler,
         optimizer: Callable[..., torch.optim.Optimizer],
         scheduler: Callable[..., Any] | None = None,
-        renderer: VolumeRenderer | None = None,
+        renderer: Renderer | None = None,
         chunk_size: int = 4096,
         camera_refinement: CameraRefinement | None = None,
         train_background: str = "scene",
@@ -75,14 +76,14 @@ class RadianceFieldModule(SceneModule):
     ) -> None:
         super().__init__(optimizer, scheduler)
         self.field, self.sampler = field, sampler
-        self.renderer = renderer or VolumeRenderer()
+        self.renderer = renderer or RoundsRenderer()
         self.chunk_size = chunk_size
         self.camera_refinement = camera_refinement
         if train_background not in ("scene", "random"):
             raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
         self.train_background = train_background
         if compile and (not self.renderer.fixed_shapes or getattr(sampler, "capacity", 0) is None):
-            raise ValueError("model.compile=true needs a training step of fixed shapes: model.renderer.fixed_shapes=true and, with "
+            raise ValueError("model.compile=true needs a training step of fixed shapes: model/renderer=table and, with "
                              "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
                              "depend on the data, so each would compile anew")
         self.rays_that_fit: torch.Tensor | None = None
@@ -134,7 +135,7 @@ class RadianceFieldModule(SceneModule):
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False, camera_indices: torch.Tensor | None = None) -> dict[str, Any]:
         """(N, 3) world rays with unit directions (and (N,) the training image of each, or None for other views) ->
         rgb (N, 3), depth (N,), accumulation (N,), and the renderer's ``weights`` and ``n_evaluated`` and the
-        sampler's ``samples`` (see :class:`VolumeRenderer`)."""
+        sampler's ``samples`` (see :class:`~nerf_lightning.rendering.renderer.Renderer`)."""
         rays = self.space.rays(rays_o, rays_d)._replace(camera_indices=camera_indices)
         samples = self.sampler.sample(rays, self.space, self.field, perturb)
         out = self.renderer(self.field, rays, samples, self.space)

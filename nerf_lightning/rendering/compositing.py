@@ -8,7 +8,7 @@ A ray crosses samples i = 0, 1, ... in order. Sample i stands for an interval of
     w_i     = T_i alpha_i                                       the chance it ends at sample i
     C       = sum_i w_i c_i + (1 - sum_i w_i) background         the accumulation sum_i w_i = 1 - T_after <= 1
 
-A ray rendered in rounds (:class:`~nerf_lightning.rendering.renderer.VolumeRenderer`) carries its transmittance from
+A ray rendered in rounds (:class:`~nerf_lightning.rendering.rounds.RoundsRenderer`) carries its transmittance from
 one round to the next: ``transmittance_before`` multiplies every T_i of the round, and ``transmittance_after`` is
 what the ray leaves the round with, T_before prod_i (1 - alpha_i).
 

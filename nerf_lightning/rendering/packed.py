@@ -28,8 +28,7 @@ class RaySamples:
         n_rays: N.
         extras: what the sampler computed on the way and hands to its own :meth:`RaySampler.losses` (e.g. the coarse
             network's colours (N, 3)), kept out of the renderer.
-        slots, width: for samples of a fixed count (a fixed-shape step, :class:`~nerf_lightning.rendering.renderer.VolumeRenderer`'s
-            ``fixed_shapes``): each sample's column (M,) in an (N + 1, width) table of the rays' steps, whose last row
+        slots, width: for samples of a fixed count (a fixed-shape step, :class:`~nerf_lightning.rendering.table.TableRenderer`): each sample's column (M,) in an (N + 1, width) table of the rays' steps, whose last row
             holds padding (samples of zero width, ray index N, that add nothing); None for samples of any count.
     """
 
@@ -77,7 +76,7 @@ def composite_packed(
         ray_indices: (M,) non-decreasing ray of each sample; n_rays: N;
         background: (3,) blended in by 1 - accumulation, None for black.
         transmittance_before: (N,) the transmittance each ray arrives with (from samples composited earlier,
-            see :class:`~nerf_lightning.rendering.renderer.VolumeRenderer`); None for 1.
+            see :class:`~nerf_lightning.rendering.rounds.RoundsRenderer`); None for 1.
 
     Returns:
         ``rgb`` (N, 3), ``depth`` (N,) (expected distance of the interval midpoints, given that the ray ends),

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler, VolumeRenderer
+from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler, RoundsRenderer, TableRenderer, VolumeRenderer
 from nerf_lightning.rendering.occupancy import march_rays
 from nerf_lightning.rendering.packed import RaySamples
 from nerf_lightning.syncs import HOST_DATA
@@ -113,8 +113,8 @@ def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampl
         t = torch.linspace(2.0, 6.0, 65)
         table_samples = round_samples = RaySamples.from_edges(t.expand(64, 65).contiguous())
     results = []
-    for renderer, samples in ((VolumeRenderer(early_stop_eps=0.0, samples_per_round=7), round_samples),
-                              (VolumeRenderer(fixed_shapes=True), table_samples)):
+    for renderer, samples in ((RoundsRenderer(early_stop_eps=0.0, samples_per_round=7), round_samples),
+                              (TableRenderer(), table_samples)):
         field.scale.grad = None
         out = renderer(field, rays, samples, space)
         (out["rgb"].sum() + out["depth"].sum()).backward()
@@ -126,7 +126,7 @@ def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampl
     torch.testing.assert_close(table["weights"][:real], rounds["weights"])
     assert not table["weights"][real:].any()
     torch.testing.assert_close(table_grad, rounds_grad)
-    padded = VolumeRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, table_samples, space)  # the rounds skip padding
+    padded = RoundsRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, table_samples, space)  # the rounds skip padding
     torch.testing.assert_close(padded["rgb"], rounds["rgb"])
     samples = table_samples
     assert int(table["n_evaluated"]) == int((samples.t_ends > samples.t_starts).sum())
@@ -166,3 +166,24 @@ def test_a_fixed_shape_training_step_never_waits_for_the_device(preset, tmp_path
     # (on the host's generator: no wait for a GPU), after Lightning's checkpoint callbacks have made the epoch and
     # step numbers host tensors (on the host: no copy)
     assert {key: value for key, value in steps[-1].items() if key != HOST_DATA} in ({}, {"aten._local_scalar_dense": 1}), steps
+
+
+def test_a_renderer_of_an_old_config_is_the_mode_its_flag_named():
+    """Checkpoints and configs from before model/renderer=rounds|table name VolumeRenderer with fixed_shapes."""
+    from hydra.utils import instantiate
+
+    old = {"_target_": "nerf_lightning.rendering.VolumeRenderer", "early_stop_eps": 1e-3, "samples_per_round": 8,
+           "gradient_scaling_distance": 1.0, "fixed_shapes": True}
+    table = instantiate(old)
+    assert isinstance(table, TableRenderer) and table.fixed_shapes and table.gradient_scaling_distance == 1.0
+    assert (table.rounds.early_stop_eps, table.rounds.samples_per_round) == (1e-3, 8)
+    rounds = instantiate({**old, "fixed_shapes": False})
+    assert isinstance(rounds, RoundsRenderer) and not rounds.fixed_shapes and rounds.samples_per_round == 8
+
+
+def test_the_old_renderer_keys_are_answered_with_the_new_group():
+    from nerf_lightning.config import renamed_key_message
+
+    assert "use model/renderer=table for a step of fixed shapes" in renamed_key_message(["model.renderer.fixed_shapes=true"])
+    assert "use model/renderer=rounds" in renamed_key_message(["model/renderer=volume"])
+    assert renamed_key_message(["model/renderer=table", "model.renderer.samples_per_round=8"]) is None

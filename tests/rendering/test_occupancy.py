@@ -12,7 +12,7 @@ from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.rendering import (
     OccupancyGrid,
     OccupancyGridSampler,
-    VolumeRenderer,
+    RoundsRenderer,
     composite,
     composite_packed,
     exclusive_sum_packed,
@@ -321,11 +321,11 @@ def test_rendering_in_rounds_equals_compositing_every_marched_sample():
     points = rays.points(samples.ray_indices, 0.5 * (samples.t_starts + samples.t_ends))
     out = field(points, rays_d[samples.ray_indices])
     everything = composite_packed(out["rgb"], out["density"], samples.t_starts, samples.t_ends, samples.ray_indices, 64, space.background)
-    exact = VolumeRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, samples, space)
+    exact = RoundsRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, samples, space)
     assert exact["n_evaluated"] == len(samples)
     for key in ("rgb", "depth", "accumulation", "weights"):
         torch.testing.assert_close(exact[key], everything[key])
-    stopped = VolumeRenderer(early_stop_eps=1e-4, samples_per_round=7)(field, rays, samples, space)
+    stopped = RoundsRenderer(early_stop_eps=1e-4, samples_per_round=7)(field, rays, samples, space)
     assert stopped["n_evaluated"] < 0.6 * len(samples)  # the samples behind the ball are never evaluated
     torch.testing.assert_close(stopped["rgb"], everything["rgb"], atol=2e-4, rtol=0)
     stopped["rgb"].sum().backward()
@@ -352,7 +352,7 @@ def test_marching_and_rendering_give_the_same_result_on_cuda():
     grid = random_grid(seed=8, fraction=0.5)
     field = BallField()
     rays_o, rays_d = rays_towards_origin(256, seed=9, spread=0.6)
-    sampler, renderer = OccupancyGridSampler(grid, step_size=0.02), VolumeRenderer()
+    sampler, renderer = OccupancyGridSampler(grid, step_size=0.02), RoundsRenderer()
 
     def render(device):
         space = SceneSpace(2.0, 6.0).to(device)

@@ -14,7 +14,7 @@ from nerf_lightning.rendering import (
     OccupancyGridSampler,
     ProposalSampler,
     StratifiedSampler,
-    VolumeRenderer,
+    RoundsRenderer,
 )
 from nerf_lightning.rendering.packed import RaySamples
 from nerf_lightning.rendering.samplers import stratified_edges
@@ -69,7 +69,7 @@ def test_any_sampler_with_any_field_renders_samples_in_order_between_near_and_fa
     rays = camera_rays(space)
     samples = sampler.sample(rays, space, field, perturb=perturb)
     assert_packed_in_range(samples, 2.0, 6.0)
-    out = VolumeRenderer(early_stop_eps=0.0)(field, rays, samples, space)
+    out = RoundsRenderer(early_stop_eps=0.0)(field, rays, samples, space)
     assert out["rgb"].shape == (64, 3) and out["weights"].shape == (len(samples),) and out["n_evaluated"] == len(samples)
     target = torch.rand(64, 3)
     losses = sampler.losses(samples, out, target)
@@ -149,7 +149,7 @@ def test_a_contracted_scene_marches_to_far_and_feeds_the_field_contracted_points
     rays = space.rays(torch.zeros(8, 3), torch.nn.functional.normalize(torch.randn(8, 3, generator=torch.Generator().manual_seed(0)), dim=-1))
     samples = sampler.sample(rays, space, Recorder(), perturb=False)
     assert float(samples.t_ends.max()) == pytest.approx(100.0)
-    VolumeRenderer()(Recorder(), rays, samples, space)
+    RoundsRenderer()(Recorder(), rays, samples, space)
     points = torch.cat(seen)
     assert points.abs().max() < 2.0 and points.abs().max() > 1.9
 
@@ -269,7 +269,7 @@ def test_gradient_scaling_scales_the_gradients_of_near_samples_by_the_squared_di
     grads, values = [], []
     for distance in (0.0, 1.0):
         field = ConstantField()
-        out = VolumeRenderer(early_stop_eps=0.0, gradient_scaling_distance=distance)(field, rays, samples, space)
+        out = RoundsRenderer(early_stop_eps=0.0, gradient_scaling_distance=distance)(field, rays, samples, space)
         out["rgb"].sum().backward()
         grads.append(torch.cat([field.sigma.grad[None], field.colour.grad]))
         values.append(out["rgb"].detach())

@@ -3,7 +3,7 @@
 A sampler turns N rays into M samples *packed* (nerfacc's layout): ``ray_indices`` (M,), the ray of each sample,
 non-decreasing, so that a ray's samples are contiguous and ordered by distance, and ``t_starts``, ``t_ends`` (M,),
 the interval of the ray each sample stands for (the field is evaluated at its midpoint). Rays may have different
-numbers of samples, none included. One renderer (:class:`~nerf_lightning.rendering.renderer.VolumeRenderer`)
+numbers of samples, none included. One renderer (:class:`~nerf_lightning.rendering.renderer.Renderer`)
 renders the samples of every sampler.
 
 Adding a sampler is one file: subclass :class:`RaySampler`, implement :meth:`~RaySampler.sample`, and, if it

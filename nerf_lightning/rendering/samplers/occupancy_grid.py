@@ -20,7 +20,7 @@ class OccupancyGridSampler(RaySampler):
         cone_angle: > 0 makes the steps grow with the distance, ``max(step_size, cone_angle * t)`` (Instant-NGP's
             cone tracing), so that an unbounded scene's far background costs few samples.
         alpha_threshold: > 0 also drops steps whose opacity is below it, at the cost of a density pass.
-        capacity: samples a training step, a fixed number (a fixed-shape step, for the renderer's ``fixed_shapes``:
+        capacity: samples a training step, a fixed number (a fixed-shape step, for ``model/renderer=table``:
             the occupied steps, padded, or the first ``capacity`` of them, the rays cut short left out of the loss);
             None: as many as the rays have. Not with ``cone_angle``.
         march_capacity: with ``capacity``, the occupied steps a training step first takes, evaluated once without

@@ -10,11 +10,54 @@ resumed from a checkpoint draws the batches the uninterrupted run would have dra
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, TypedDict
 
 import lightning as L
 import torch
 from torch.utils.data import DataLoader, IterableDataset
+
+
+# What the DataModules give a model, typed once. A capture's masks (data.masks) give the same keys in rays and views:
+# ``object_mask`` (True on the object) where the mode is ``background`` (the pixels outside show the background
+# colour), ``loss_mask`` (True where the loss reaches) for a view or patch where it is ``exclude`` (rays are then drawn
+# among the masked pixels, and need none). A held-out view's ``object_mask`` is where it is scored alone.
+
+
+class RayBatch(TypedDict, total=False):
+    """A training step's random rays (``RayDataModule``), N of them, on the training device."""
+
+    rays_o: torch.Tensor  # (N, 3) origins, in the scene's world
+    rays_d: torch.Tensor  # (N, 3) directions (unit)
+    rgb: torch.Tensor  # (N, 3) float in [0, 1], the pixels' colours
+    camera_index: torch.Tensor  # (N,) long, the training view each ray is of
+    object_mask: torch.Tensor  # (N,) bool, data.masks=background
+
+
+class ViewBatch(TypedDict, total=False):
+    """A training step's whole view or patch (``ViewDataModule``), h x w pixels, on the training device."""
+
+    image: torch.Tensor  # (h, w, 3) float in [0, 1]
+    K: torch.Tensor  # (3, 3) the patch's intrinsics (its principal point moved by the offset)
+    c2w: torch.Tensor  # (4, 4) OpenCV camera-to-world
+    camera_index: torch.Tensor  # () long
+    offset: torch.Tensor  # (2,) long, the patch's first column and row in the view
+    height: int
+    width: int
+    object_mask: torch.Tensor  # (h, w) bool, data.masks=background
+    loss_mask: torch.Tensor  # (h, w) bool, data.masks=exclude
+
+
+class HeldOutView(TypedDict, total=False):
+    """One whole held-out view, as validation and ``nerf-eval`` score it (:func:`~nerf_lightning.data.scene_data.view_batch`)."""
+
+    K: torch.Tensor  # (3, 3)
+    c2w: torch.Tensor  # (4, 4) OpenCV camera-to-world; a model renders it with render_view
+    height: int
+    width: int
+    index: int  # in the views it is one of
+    image: torch.Tensor  # (H, W, 3) float in [0, 1], where the views have images
+    depth: torch.Tensor  # (H, W), where the scene has true depth
+    object_mask: torch.Tensor  # (H, W) bool, with masks and a masks mode
 
 
 def steps_to_next_validation(step: int, val_steps: Sequence[int], val_every: int | None, max_steps: int) -> int:

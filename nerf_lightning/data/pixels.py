@@ -17,7 +17,8 @@ class PixelDataModule(StepBatchesDataModule):
 
     Training batch: ``xy`` (N, 2) pixel-centre positions, x divided by the width and y by the height, in
     [0, 1]; ``rgb`` (N, 3) colours in [0, 1] (8-bit values / 255). Pixels are drawn uniformly with
-    replacement. Validation batch: every pixel in row-major order plus ``height`` and ``width``.
+    replacement. Validation batch: every pixel's ``xy`` (H*W, 2) in row-major order, the ``image`` (H, W, 3), and
+    ``height`` and ``width``.
 
     Args:
         path: a PNG or JPG; None uses the built-in :func:`default_image`.
@@ -61,5 +62,5 @@ class PixelDataModule(StepBatchesDataModule):
 
     def val_dataloader(self) -> DataLoader:
         height, width = self.image_size
-        whole: dict[str, Any] = {"xy": self.xy, "rgb": self.rgb, "height": height, "width": width}
+        whole: dict[str, Any] = {"xy": self.xy, "image": self.image, "height": height, "width": width}
         return DataLoader([whole], batch_size=None, num_workers=0)

@@ -7,6 +7,7 @@ from typing import Any
 
 import torch
 
+from nerf_lightning.data.batches import HeldOutView, RayBatch
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.scene import Scene
@@ -39,8 +40,6 @@ class RayDataModule(SceneDataModule):
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
-    batches = "rays"  # what a training batch is, for a model to check it can train on it
-
     def __init__(self, scene: Callable[..., Scene], root: str | None = None, batch_size: int = 10_000, **options: Any) -> None:
         super().__init__(scene, root, batch_size, **options)
 
@@ -72,8 +71,9 @@ class RayDataModule(SceneDataModule):
             return {"pixel_index": self.drawable[torch.randint(0, len(self.drawable), (self.batch_size,), generator=generator)].long()}
         return {"pixel_index": torch.randint(0, self.rgb.shape[0], (self.batch_size,), generator=generator)}
 
-    def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
-        """A training batch's rays and colours, made on the device its ``pixel_index`` was moved to."""
+    def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> RayBatch | HeldOutView:
+        """A training batch's rays and colours (:class:`~nerf_lightning.data.batches.RayBatch`), made on the device
+        its ``pixel_index`` was moved to."""
         if "pixel_index" not in batch:
             return batch  # a validation view: its camera, which the model renders
         index = batch["pixel_index"]
@@ -81,9 +81,9 @@ class RayDataModule(SceneDataModule):
         rays_o, rays_d = indexed_pixel_rays(K, c2w, self.scene.train.height, self.scene.train.width, index)
         colours = self.rgb[index.cpu()].to(index.device, non_blocking=True) if images is None else images.reshape(-1, 3)[index]
         camera_index = index // (self.scene.train.height * self.scene.train.width)
-        batch = {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours), "camera_index": camera_index}
+        rays: RayBatch = {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours), "camera_index": camera_index}
         if self.mask_mode == "background":  # the pixels outside the object show the background; the model sees which
             masks = self.train_masks(index.device).reshape(-1)
-            batch["mask"] = masks[index.cpu()].to(index.device, non_blocking=True) if masks.device != index.device else masks[index]
-            batch["rgb"] = composite_background(batch["rgb"], batch["mask"], self.background_on(index.device))
-        return batch
+            rays["object_mask"] = masks[index.cpu()].to(index.device, non_blocking=True) if masks.device != index.device else masks[index]
+            rays["rgb"] = composite_background(rays["rgb"], rays["object_mask"], self.background_on(index.device))
+        return rays

@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
-from typing import Any
 
 import torch
 from torch.utils.data import DataLoader
 
-from nerf_lightning.data.batches import StepBatchesDataModule
+from nerf_lightning.data.batches import HeldOutView, StepBatchesDataModule
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background, resolve_mode
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
@@ -20,21 +19,21 @@ from nerf_lightning.geometry.space import SceneSpace
 RENDER_PATHS = ("test", "orbit", "spiral")
 
 
-def view_batch(views: Views, index: int, masks: str | None = None, background: torch.Tensor | None = None) -> dict[str, Any]:
-    """One whole view: its camera ``K`` (3, 3), ``c2w`` (4, 4) (a model renders it with ``render_view``), rgb
-    (H*W, 3) in [0, 1] and depth (H*W,) where known, row-major; ``height``, ``width`` and ``index`` (in ``views``).
-    With a ``masks`` mode (:mod:`~nerf_lightning.data.masks`) and masks, ``mask`` (H*W,) bool too, and with
-    ``background`` mode the colours outside it are ``background`` (3,)."""
-    batch: dict[str, Any] = {"K": views.K[index], "c2w": views.c2w[index], "height": views.height, "width": views.width, "index": index}
-    mask = views.masks[index].reshape(-1) if masks is not None and views.masks is not None else None
+def view_batch(views: Views, index: int, masks: str | None = None, background: torch.Tensor | None = None) -> HeldOutView:
+    """One whole view (:class:`~nerf_lightning.data.batches.HeldOutView`): its camera ``K`` (3, 3), ``c2w`` (4, 4) (a
+    model renders it with ``render_view``), ``image`` (H, W, 3) in [0, 1] and ``depth`` (H, W) where known;
+    ``height``, ``width`` and ``index`` (in ``views``). With a ``masks`` mode (:mod:`~nerf_lightning.data.masks`) and
+    masks, ``object_mask`` (H, W) bool too, and with ``background`` mode the colours outside it are ``background`` (3,)."""
+    batch: HeldOutView = {"K": views.K[index], "c2w": views.c2w[index], "height": views.height, "width": views.width, "index": index}
+    mask = views.masks[index] if masks is not None and views.masks is not None else None
     if views.images is not None:
-        batch["rgb"] = as_float_rgb(views.images[index].reshape(-1, 3))
+        batch["image"] = as_float_rgb(views.images[index])
         if masks == "background":
-            batch["rgb"] = composite_background(batch["rgb"], mask, background)
+            batch["image"] = composite_background(batch["image"], mask, background)
     if mask is not None:
-        batch["mask"] = mask
+        batch["object_mask"] = mask
     if views.depth is not None:
-        batch["depth"] = views.depth[index].reshape(-1)
+        batch["depth"] = views.depth[index]
     return batch
 
 
@@ -141,7 +140,7 @@ class SceneDataModule(StepBatchesDataModule):
             self._background_on_device[device] = self.scene.background.to(device)
         return self._background_on_device[device]
 
-    def view_batch(self, views: Views, index: int) -> dict[str, Any]:
+    def view_batch(self, views: Views, index: int) -> HeldOutView:
         """:func:`view_batch` of one of ``views`` with this datamodule's masks mode."""
         return view_batch(views, index, self.mask_mode, self.scene.background)
 

@@ -7,6 +7,7 @@ from typing import Any
 
 import torch
 
+from nerf_lightning.data.batches import HeldOutView, ViewBatch
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.scene import Scene
@@ -43,8 +44,6 @@ class ViewDataModule(SceneDataModule):
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
-    batches = "views"  # what a training batch is, for a model to check it can train on it
-
     def __init__(self, scene: Callable[..., Scene], root: str | None = None, patch_size: int | None = None, **options: Any) -> None:
         super().__init__(scene, root, batch_size=1, **options)
         if patch_size is not None and patch_size < 1:
@@ -72,8 +71,9 @@ class ViewDataModule(SceneDataModule):
         crop = (int(camera_index), int(x0), int(y0))
         return {"camera_index": camera_index, "offset": torch.stack([x0, y0]), "crop": crop}
 
-    def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> dict[str, Any]:
-        """A training batch's image (or patch) and camera, made on the device its ``camera_index`` was moved to."""
+    def on_after_batch_transfer(self, batch: dict[str, Any], dataloader_idx: int) -> ViewBatch | HeldOutView:
+        """A training batch's image (or patch) and camera (:class:`~nerf_lightning.data.batches.ViewBatch`), made on
+        the device its ``camera_index`` was moved to."""
         if "offset" not in batch:
             return batch  # a validation view: its camera, which the model renders
         index, offset = batch["camera_index"], batch["offset"]
@@ -86,12 +86,13 @@ class ViewDataModule(SceneDataModule):
             image = train.images[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
         else:
             image = images[view, y0 : y0 + height, x0 : x0 + width]
-        batch = {"image": as_float_rgb(image), "K": patch_camera(K[view], x0, y0), "c2w": c2w[view], "camera_index": index,
-                 "offset": offset, "height": height, "width": width}
+        drawn: ViewBatch = {"image": as_float_rgb(image), "K": patch_camera(K[view], x0, y0), "c2w": c2w[view],
+                            "camera_index": index, "offset": offset, "height": height, "width": width}
         if self.mask_mode is not None:
             mask = self.train_masks(device)[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
-            if self.mask_mode == "background":
-                batch["image"] = composite_background(batch["image"], mask, self.scene.background)
+            if self.mask_mode == "background":  # the pixels outside the object show the background; the model sees which
+                drawn["image"] = composite_background(drawn["image"], mask, self.scene.background)
+                drawn["object_mask"] = mask
             else:  # exclude: the model's loss covers the masked pixels alone
-                batch["mask"] = mask
-        return batch
+                drawn["loss_mask"] = mask
+        return drawn

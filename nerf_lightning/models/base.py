@@ -13,6 +13,7 @@ from torch import nn
 
 from torchmetrics import MeanMetric
 
+from nerf_lightning.data.batches import HeldOutView
 from nerf_lightning.errors import NonFiniteLossError
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import image_metrics
@@ -112,12 +113,10 @@ class SceneModule(FieldModule):
         # the mean over the validated views where a surface is seen (NaN views left out), summed over DDP ranks
         self.val_depth_error = MeanMetric(nan_strategy="ignore")
 
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
+    def validation_step(self, batch: HeldOutView, batch_idx: int) -> dict[str, Any]:
         height, width = batch["height"], batch["width"]
         out = self.render_view(batch["K"], batch["c2w"], height, width)
-        target = batch["rgb"].reshape(height, width, 3)
-        true_depth = batch["depth"].reshape(height, width) if "depth" in batch else None
-        mask = batch["mask"].reshape(height, width) if "mask" in batch else None
+        target, true_depth, mask = batch["image"], batch.get("depth"), batch.get("object_mask")
         metrics = image_metrics(out["rgb"], target, out["depth"], true_depth, mask)
         self.log("val/psnr", metrics["psnr"], prog_bar=True, batch_size=1, sync_dist=True)
         self.log("val/ssim", metrics["ssim"], batch_size=1, sync_dist=True)

@@ -74,7 +74,7 @@ class ImageFieldModule(FieldModule):
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> dict[str, Any]:
         height, width = batch["height"], batch["width"]
         rgb = self.render(batch["xy"]).reshape(height, width, 3)
-        target = batch["rgb"].reshape(height, width, 3)
+        target = batch["image"]
         psnr = kornia.metrics.psnr(rgb, target, max_val=1.0)
         self.log("val/psnr", psnr, prog_bar=True, batch_size=1, sync_dist=True)
         return {"images": {"rgb": rgb, "target": target}}

@@ -11,6 +11,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from nerf_lightning.compiling import CompiledOrEager
+from nerf_lightning.data.batches import RayBatch
+from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
@@ -104,8 +106,8 @@ class RadianceFieldModule(SceneModule):
         """Size what is learnt a training view (the field's appearance embedding, the camera corrections) to the
         training views (before the optimiser is built and a checkpoint is restored)."""
         datamodule = getattr(getattr(self, "trainer", None), "datamodule", None)
-        if stage == "fit" and getattr(datamodule, "batches", "rays") != "rays":
-            raise ValueError(f"a radiance field trains on random rays, and data={getattr(datamodule, 'batches', '?')} serves whole "
+        if stage == "fit" and isinstance(datamodule, ViewDataModule):
+            raise ValueError("a radiance field trains on random rays, and data=views serves whole "
                              "training views: use data=<format> (blender, llff, transforms, ...), which serves rays")
         precision = str(getattr(getattr(self, "trainer", None), "precision", "32-true"))
         for name, module in self.named_modules():
@@ -232,7 +234,7 @@ class RadianceFieldModule(SceneModule):
                              "model has none: set one (as experiment=fast_blender_gpu does), or remove the callback")
         self.ray_count_varies = True
 
-    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: RayBatch, batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)  # a grid refresh: outside the compiled graph, on its own steps
         if self.compiled_step is None:
             terms = self.step_losses(batch)
@@ -255,7 +257,7 @@ class RadianceFieldModule(SceneModule):
         self.log("train/rays", batch["rays_o"].new_full((), float(batch["rays_o"].shape[0])), on_step=True)
         return loss
 
-    def step_losses(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    def step_losses(self, batch: RayBatch) -> dict[str, torch.Tensor]:
         """The training step's tensors, from a batch of N rays to the loss (what ``compile`` compiles): ``loss``
         (the one to minimise), ``mse`` and ``samples_per_ray`` (detached), each extra loss as ``loss_<name>``
         (the sampler's, the camera corrections' and the appearance embedding's penalties, detached) and, from a
@@ -269,8 +271,8 @@ class RadianceFieldModule(SceneModule):
         if self.train_background == "random":  # what a ray leaves transparent shows a random colour, not the photo's
             colour = torch.rand_like(rgb)
             rgb = rgb + (1.0 - out["accumulation"])[:, None] * (colour - self.space.background.to(rgb))
-            if "mask" in batch:  # data.masks=background: outside the object the target is that colour too
-                target = torch.where(batch["mask"][:, None], target, colour)
+            if "object_mask" in batch:  # data.masks=background: outside the object the target is that colour too
+                target = torch.where(batch["object_mask"][:, None], target, colour)
         samples = out.get("samples")
         complete = samples.extras.get("complete") if samples is not None else None  # a fixed capacity: rays cut short stay out of the loss
         if complete is None:

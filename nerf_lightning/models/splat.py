@@ -16,6 +16,8 @@ import kornia
 import torch
 from torch.profiler import record_function
 
+from nerf_lightning.data.batches import ViewBatch
+from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
@@ -105,9 +107,9 @@ class SplatModule(SceneModule):
         datamodule = getattr(getattr(self, "trainer", None), "datamodule", None)
         if stage != "fit" or datamodule is None:
             return
-        if getattr(datamodule, "batches", "rays") != "views":
+        if not isinstance(datamodule, ViewDataModule):
             raise ValueError("Gaussian splats train on whole views or patches: use data=views (with data/scene=<format>), "
-                             f"not data={getattr(datamodule, 'batches', '?')}")
+                             f"not the {type(datamodule).__name__}'s batches")
         space = datamodule.space  # the DataModule is set up before the model
         if space.ndc is not None or space.contraction is not None:
             raise ValueError("Gaussian splats live in the scene's own world: data.ndc and data.contract must be false for model=splat")
@@ -247,7 +249,7 @@ class SplatModule(SceneModule):
 
     # -- training and validation ----------------------------------------------------------------------------------
 
-    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: ViewBatch, batch_idx: int) -> torch.Tensor:
         image, c2w, camera_index = batch["image"], batch["c2w"], batch.get("camera_index")
         height, width = image.shape[:2]
         if self.camera_refinement is not None and camera_index is not None:
@@ -262,7 +264,7 @@ class SplatModule(SceneModule):
         rgb = out["rgb"]
         if self.appearance is not None and camera_index is not None:  # the view's colour transform, the background as it is
             rgb = self.appearance(rgb, camera_index.reshape(()), out["accumulation"], self.space.background)
-        mask = batch.get("mask")  # data.masks=exclude: no gradient reaches a pixel outside; the loss a mean over the mask
+        mask = batch.get("loss_mask")  # data.masks=exclude: no gradient reaches a pixel outside; the loss a mean over the mask
         if mask is not None:
             rgb = torch.where(mask[..., None], rgb, image)
         with record_function("splats.loss"):

@@ -74,8 +74,7 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
         seconds = time.perf_counter() - started
         true_depth = views.depth[index] if views.depth is not None else None
         batch = view_batch(views, index, masks, background)  # the target as validation sees it
-        target = batch["rgb"].reshape(views.height, views.width, 3)
-        mask = batch["mask"].reshape(views.height, views.width) if "mask" in batch else None
+        target, mask = batch["image"], batch.get("object_mask")
         metrics = image_metrics(frame["rgb"], target, frame["depth"] if true_depth is not None else None, true_depth, mask)
         rows.append({"view": views.names[index], **{key: float(value) for key, value in metrics.items()}, "seconds": round(seconds, 4)})
         if output_dir is not None:

@@ -132,7 +132,7 @@ def test_exclude_draws_rays_among_the_masked_pixels_alone(masked_capture):
     batch = data.on_after_batch_transfer(next(iter(data.train_dataloader())), 0)
     assert bool(data.scene.train.masks.reshape(-1)[data.draw_batch(torch.Generator().manual_seed(0))["pixel_index"]].all())
     assert not torch.isclose(batch["rgb"], ROOM, atol=0.01).all(dim=-1).any()  # no ray shows the room
-    assert "mask" not in batch
+    assert "object_mask" not in batch and "loss_mask" not in batch  # every ray is of the object
 
 
 def test_background_shows_the_background_colour_outside_the_masks(masked_capture):
@@ -140,11 +140,11 @@ def test_background_shows_the_background_colour_outside_the_masks(masked_capture
     data = RayDataModule(scene=scene_of(root), batch_size=4096, masks="background")
     data.setup()
     batch = data.on_after_batch_transfer(next(iter(data.train_dataloader())), 0)
-    outside = ~batch["mask"]
+    outside = ~batch["object_mask"]
     assert 0.1 < float(outside.float().mean()) < 0.95  # rays are drawn over every pixel
     assert torch.equal(batch["rgb"][outside], torch.tensor([1.0, 0.0, 1.0]).expand(int(outside.sum()), 3))
     validation = next(iter(data.val_dataloader()))
-    assert torch.equal(validation["rgb"][~validation["mask"]].unique(dim=0), torch.tensor([[1.0, 0.0, 1.0]]))
+    assert torch.equal(validation["image"][~validation["object_mask"]].unique(dim=0), torch.tensor([[1.0, 0.0, 1.0]]))
 
 
 @pytest.mark.parametrize("mode", ["exclude", "background"])
@@ -156,10 +156,10 @@ def test_views_and_patches_carry_their_masks(masked_capture, mode):
     view, x0, y0 = batch["camera_index"].item(), *batch["offset"].tolist()
     mask = data.scene.train.masks[view, y0 : y0 + 40, x0 : x0 + 40]
     if mode == "exclude":
-        assert torch.equal(batch["mask"], mask)
+        assert torch.equal(batch["loss_mask"], mask) and "object_mask" not in batch
         assert torch.allclose(batch["image"], as_float_rgb(data.scene.train.images[view, y0 : y0 + 40, x0 : x0 + 40]))
-    else:
-        assert "mask" not in batch
+    else:  # as a ray batch has it
+        assert torch.equal(batch["object_mask"], mask) and "loss_mask" not in batch
         assert torch.equal(batch["image"][~mask], torch.tensor([1.0, 0.0, 1.0]).expand(int((~mask).sum()), 3))
 
 

@@ -83,7 +83,7 @@ def test_validation_batch_is_the_whole_image():
     (whole,) = list(data.val_dataloader())
     assert (whole["height"], whole["width"]) == (64, 96)
     assert whole["xy"].shape == (64 * 96, 2)
-    torch.testing.assert_close(whole["rgb"].reshape(64, 96, 3), data.image)
+    torch.testing.assert_close(whole["image"], data.image)
 
 
 def test_segments_end_at_validation_steps():

@@ -50,11 +50,11 @@ def test_validation_batches_are_whole_held_out_views(rays, procedural_scene):
     val = procedural_scene.splits["val"]
     assert len(batches) == 3 and views.names == [val.names[0], val.names[4], val.names[9]]  # spread over the split
     for index, batch in enumerate(batches):
-        assert "rays_o" not in batch and batch["rgb"].shape == (100 * 100, 3)  # the camera: its rays are made where it renders
+        assert "rays_o" not in batch and batch["image"].shape == (100, 100, 3)  # the camera: its rays are made where it renders
         assert (batch["height"], batch["width"], batch["index"]) == (100, 100, index)
         assert torch.equal(batch["K"], views.K[index]) and torch.equal(batch["c2w"], views.c2w[index])  # the camera, for models that render views
-        torch.testing.assert_close(batch["rgb"].reshape(100, 100, 3), views.images[index].float() / 255)
-        torch.testing.assert_close(batch["depth"].reshape(100, 100), views.depth[index])
+        torch.testing.assert_close(batch["image"], views.images[index].float() / 255)
+        torch.testing.assert_close(batch["depth"], views.depth[index])
 
 
 @pytest.mark.parametrize("path", ["orbit", "spiral"])

@@ -194,7 +194,7 @@ def test_an_exclude_mask_keeps_the_pixels_outside_it_out_of_the_loss(make_config
     model.draw = lambda K, c2w, height, width: ({"rgb": rendered}, SimpleNamespace(means2d=torch.zeros(1, 2)))
     mask = torch.zeros(32, 32, dtype=torch.bool)
     mask[8:24, 8:24] = True
-    model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None, "mask": mask}, 0).backward()
+    model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None, "loss_mask": mask}, 0).backward()
     assert rendered.grad[~mask].abs().max() == 0 and rendered.grad[mask].abs().min() > 0
     rendered.grad = None
     model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None}, 0).backward()  # no mask: every pixel

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler, RoundsRenderer, TableRenderer, VolumeRenderer
+from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler, RoundsRenderer, TableRenderer
 from nerf_lightning.rendering.occupancy import march_rays
 from nerf_lightning.rendering.packed import RaySamples
 from nerf_lightning.syncs import HOST_DATA

@@ -41,7 +41,7 @@ from nerf_lightning.data.images import downscale as area_downscale
 from nerf_lightning.data.images import downscale_mask, load_image, load_mask
 from nerf_lightning.io import write_png
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
-from nerf_lightning.data.formats.transforms import apply_similarity, normalising_transform
+from nerf_lightning.data.formats.shared import apply_similarity, normalising_transform
 from nerf_lightning.data.points import read_colmap_points
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 

@@ -11,10 +11,7 @@ Deterministic: the same arguments give the same files.
 from __future__ import annotations
 
 import math
-import os
-import shutil
 import tempfile
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +19,7 @@ import numpy as np
 import torch
 
 from nerf_lightning.data.formats.blender import load_blender
+from nerf_lightning.data.formats.shared import default_cache, rendered_once
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.geometry.cameras import look_at, opengl_to_opencv
 from nerf_lightning.geometry.rays import image_rays
@@ -172,28 +170,6 @@ def make_procedural_scene(root: str | Path, n_views: int = 100, size: int = 100,
         "version": VERSION, "n_views": n_views, "size": size, "fov_degrees": fov_degrees, "camera_radius": 4.0,
         "spheres": [vars(s) for s in SPHERES], "boxes": [vars(b) for b in BOXES], "light": LIGHT,
     })
-    return root
-
-
-def default_cache() -> Path:
-    return Path(os.environ.get("NERF_LIGHTNING_CACHE", Path.home() / ".cache" / "nerf_lightning"))
-
-
-def rendered_once(root: Path, marker: str, make: Callable[[Path], object]) -> Path:
-    """``root``, rendered by ``make(folder)`` where ``root/marker`` is not there yet: into a staging folder beside it,
-    then renamed, so that a reader never sees half a scene and processes rendering it at once keep the first."""
-    if not (root / marker).is_file():
-        root.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(dir=root.parent, prefix=f".{root.name}."))
-        try:
-            make(staging)
-            try:
-                staging.rename(root)
-            except OSError:  # another process made it first
-                if not (root / marker).is_file():
-                    raise
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
     return root
 
 

@@ -41,10 +41,10 @@ import torch
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image, load_mask
+from nerf_lightning.data.formats.shared import CENTRES, apply_similarity, normalising_transform  # noqa: F401 (also read from here)
 from nerf_lightning.data.points import read_ply_points
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
-from nerf_lightning.geometry.paths import look_at_point
 
 log = logging.getLogger(__name__)
 
@@ -93,50 +93,6 @@ def undistort(image: torch.Tensor, K: torch.Tensor, distortion: torch.Tensor) ->
     if not distortion.any():
         return image
     return kornia.geometry.calibration.undistort_image(image.permute(2, 0, 1)[None], K[None], distortion[None])[0].permute(1, 2, 0)
-
-
-CENTRES = ("focus", "poses", "none")
-
-
-def normalising_transform(c2w: torch.Tensor, centre: str = "focus") -> torch.Tensor:
-    """(N, 4, 4) OpenGL cameras -> (4, 4) similarity: centre on the cameras' focus (``focus``), on their mean
-    centre (``poses``) or not at all (``none``); mean up to +z; farthest camera coordinate 1.
-
-    ``focus`` falls back to ``poses`` where the cameras do not look towards a common point (it would lie behind them)."""
-    if centre not in CENTRES:
-        raise ValueError(f"data.scene.centre must be one of {CENTRES}, got '{centre}'")
-    c2w = c2w.double()
-    origins = c2w[:, :3, 3]
-    if centre == "focus":
-        focus = look_at_point(opengl_to_opencv(c2w))
-        in_front = float(((focus - origins) * -c2w[:, :3, 2]).sum(-1).mean()) > 0  # OpenGL cameras look down -z
-        centre_point = focus if in_front else origins.mean(0)
-    else:
-        centre_point = origins.mean(0) if centre == "poses" else torch.zeros(3, dtype=torch.float64)
-    up = torch.nn.functional.normalize(c2w[:, :3, 1].mean(0), dim=0)
-    # the rotation taking ``up`` to +z (Rodrigues), as nerfstudio's rotation_matrix(up, [0, 0, 1])
-    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    axis, cosine = torch.linalg.cross(up, z), float(up @ z)
-    if cosine < -1.0 + 1e-9:
-        rotation = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
-    else:
-        skew = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]], dtype=torch.float64)
-        rotation = torch.eye(3, dtype=torch.float64) + skew + skew @ skew / (1.0 + cosine)
-    transform = torch.eye(4, dtype=torch.float64)
-    transform[:3, :3], transform[:3, 3] = rotation, -rotation @ centre_point
-    reach = float((transform[:3, :3] @ c2w[:, :3, 3].T + transform[:3, 3:]).abs().max())
-    scale = 1.0 / reach if reach > 1e-9 else 1.0  # cameras all at the centre (one camera): nothing to scale by
-    return torch.diag(torch.tensor([scale, scale, scale, 1.0], dtype=torch.float64)) @ transform
-
-
-def apply_similarity(transform: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
-    """A (4, 4) similarity applied to (N, 4, 4) cameras, their rotations kept orthonormal; float64 out."""
-    transform = transform.double()
-    scale = transform[:3, :3].det().abs() ** (1.0 / 3.0)
-    out = c2w.double().clone()
-    out[:, :3, :3] = (transform[:3, :3] / scale) @ c2w[:, :3, :3].double()
-    out[:, :3, 3] = (transform[:3, :3] @ c2w[:, :3, 3].double().T + transform[:3, 3:]).T
-    return out
 
 
 def load_transforms(

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import torch
 
-from nerf_lightning.data.formats.procedural import default_cache, rendered_once
+from nerf_lightning.data.formats.shared import default_cache, rendered_once
 from nerf_lightning.data.formats.transforms import load_transforms
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.geometry.cameras import look_at, opengl_to_opencv

@@ -5,14 +5,21 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
+
+# torch is imported inside the functions: the commands' key checks (nerf_lightning.cli.keys) read DEVICE_CHOICES
+# before torch loads
 
 DEVICE_CHOICES = "auto, cpu, cuda, cuda:<index> or mps"
 
 
 def available_devices() -> list[str]:
     """The devices this machine has, as ``device=`` values."""
+    import torch
+
     devices = ["cpu"]
     if torch.cuda.is_available():
         devices += ["cuda"] + [f"cuda:{index}" for index in range(torch.cuda.device_count())]
@@ -24,6 +31,8 @@ def available_devices() -> list[str]:
 def resolve_device(name: str | torch.device | None) -> torch.device:
     """``device=`` as a torch device: ``auto`` (or None) is CUDA where there is one, else the Apple GPU (MPS), else the
     CPU. ValueError naming the key for a device that is not one of :data:`DEVICE_CHOICES` or that this machine lacks."""
+    import torch
+
     if isinstance(name, torch.device):
         return name
     text = "auto" if name is None else str(name).strip().lower()
@@ -47,6 +56,8 @@ def resolve_device(name: str | torch.device | None) -> torch.device:
 def enable_tf32() -> None:
     """On CUDA, let float32 matrix products use TensorFloat-32 (Ampere and later: several times the speed, a 10-bit
     mantissa inside the product, float32 accumulation), as Lightning suggests; nothing elsewhere."""
+    import torch
+
     if torch.cuda.is_available():
         torch.set_float32_matmul_precision("high")
 
@@ -54,6 +65,8 @@ def enable_tf32() -> None:
 def synchronize(device: torch.device) -> None:
     """Wait for the work queued on ``device`` (CUDA, Apple GPU; nothing to wait for on a CPU), so that a clock read
     after it counts that work."""
+    import torch
+
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     elif device.type == "mps":
@@ -63,6 +76,8 @@ def synchronize(device: torch.device) -> None:
 def peak_memory_gb(device: torch.device) -> float | None:
     """The most GPU memory (GiB) torch has held allocated on a CUDA ``device`` in this process
     (``torch.cuda.max_memory_allocated``), or None on any other device."""
+    import torch
+
     if device.type != "cuda":
         return None
     return round(torch.cuda.max_memory_allocated(device) / 2**30, 3)
@@ -71,6 +86,8 @@ def peak_memory_gb(device: torch.device) -> float | None:
 def memory_of(device: torch.device) -> int | None:
     """The bytes of memory ``device`` has: a GPU's own, the machine's RAM for the CPU (and for an Apple GPU, which
     shares it); None where it cannot be told."""
+    import torch
+
     if device.type == "cuda":
         return int(torch.cuda.get_device_properties(device).total_memory)
     if device.type == "mps" and hasattr(torch.mps, "recommended_max_memory"):

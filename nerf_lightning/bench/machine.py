@@ -8,8 +8,8 @@ import os
 import platform
 import re
 import subprocess
+from collections.abc import Sequence
 from datetime import datetime, timezone
-from functools import cache
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -45,19 +45,26 @@ def gpu_name(device: str = "auto") -> str | None:
     return None
 
 
-@cache
-def source_revision() -> str | None:
-    """The git commit of the checkout the package runs from (with ``+dirty`` for uncommitted changes), or None
-    outside a git checkout (an installed wheel)."""
+def source_revision(ignore: Sequence[Path] = ()) -> str | None:
+    """The git commit of the checkout the package runs from (with ``+dirty`` for uncommitted changes to tracked files
+    other than those under ``ignore``: what the benchmark runner writes itself), or None outside a git checkout (an
+    installed wheel). Asked anew each time: a row's training runs the code the checkout has when it starts."""
     root = Path(__file__).resolve().parents[2]
     if not (root / ".git").exists():
         return None
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True, timeout=10).stdout.strip()
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True, timeout=10).stdout
     except (OSError, subprocess.SubprocessError):
         return None
-    return f"{commit}+dirty" if commit and dirty else commit or None
+    return f"{commit}+dirty" if commit and changed_files(status, root, ignore) else commit or None
+
+
+def changed_files(status: str, root: Path, ignore: Sequence[Path] = ()) -> list[Path]:
+    """The files ``git status --porcelain`` (run in ``root``) lists, less those at or under a path of ``ignore``."""
+    ignored = [Path(path).resolve() for path in ignore]
+    changed = [(root / line[3:].split(" -> ")[-1].strip('"')).resolve() for line in status.splitlines() if line.strip()]
+    return [path for path in changed if not any(path == place or place in path.parents for place in ignored)]
 
 
 def versions() -> dict[str, str]:
@@ -89,6 +96,6 @@ def now() -> str:
     return datetime.now(timezone.utc).replace(microsecond=0).isoformat()
 
 
-def provenance(device: str = "auto") -> dict[str, Any]:
+def provenance(device: str = "auto", ignore: Sequence[Path] = ()) -> dict[str, Any]:
     """:func:`machine`, :func:`versions`, the revision and the date: what every benchmark JSON starts with."""
-    return {"machine": machine(device), "versions": versions(), "revision": source_revision(), "date": now()}
+    return {"machine": machine(device), "versions": versions(), "revision": source_revision(ignore), "date": now()}

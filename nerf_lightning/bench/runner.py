@@ -23,6 +23,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -107,11 +108,13 @@ def suite_argument(suite: Suite) -> str:
     return suite.name if shipped_suites().get(suite.name) == suite.path else str(suite.path)
 
 
-def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path) -> dict[str, Any]:
+def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path, written: Sequence[Path] = ()) -> dict[str, Any]:
     """Train, then score every mark, of one row; returns its result (see the module docstring)."""
     from nerf_lightning.bench.machine import provenance
 
-    measured_on = provenance(row.device)  # as the row starts: a commit made while it trains is not what it measured
+    # as the row starts (a commit made while it trains is not what it measured); the runner's own outputs (``written``)
+    # do not make the checkout dirty
+    measured_on = provenance(row.device, written)
     root = data_root(row, data_dir)
     run_dir = (work_dir / suite.name / row.slug).resolve()
     arguments = train_arguments(row, run_dir, root.resolve() if root is not None else None)
@@ -190,11 +193,12 @@ def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, 
         if root is not None and not root.exists():
             print(f"[{row.id}] skipped: {root} not found (--data-dir, or {DATA_DIR_VARIABLE}, names the data folder)", flush=True)
             continue
-        revision = source_revision()
+        written = [path for path in (results_dir, report, readme) if path is not None]
+        revision = source_revision(written)
         if revision is not None and revision.endswith("+dirty") and not allow_dirty:
             raise BenchmarkError(f"the checkout has uncommitted changes (at {revision}): commit them, so that each row "
                                  "names the code it measured, or pass --allow-dirty (the rows then say +dirty)")
-        result = measure_row(row, suite, data_dir, work_dir)
+        result = measure_row(row, suite, data_dir, work_dir, written)
         results = read_results(path)  # again: another suite run may have written meanwhile
         results["rows"] = [r for r in results["rows"] if not (r["id"] == row.id and r["machine"]["name"] == result["machine"]["name"])]
         results["rows"].append(result)

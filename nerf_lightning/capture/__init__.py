@@ -1,7 +1,24 @@
-"""A user's own photos or video to a posed capture: frames picked from a video, photos turned upright, COLMAP run
-in-process through pycolmap, the result written as nerfstudio's transforms.json (``nerf-process-data``)."""
+"""nerf-process-data: the user's own photos or video posed in-process through pycolmap, the result written as
+nerfstudio's transforms.json.
 
-from nerf_lightning.capture.compare import compare_with_reference
-from nerf_lightning.capture.process import format_report, process_capture
+Its modules load when first asked for, so that the command's key check reads :mod:`~nerf_lightning.capture.choices`
+without loading torch or pycolmap."""
 
-__all__ = ["compare_with_reference", "format_report", "process_capture"]
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_HOMES = {"compare_with_reference": "compare", "format_report": "process", "process_capture": "process"}
+
+__all__ = sorted(_HOMES)
+
+if TYPE_CHECKING:
+    from nerf_lightning.capture.compare import compare_with_reference
+    from nerf_lightning.capture.process import format_report, process_capture
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        return getattr(importlib.import_module(f"nerf_lightning.capture.{_HOMES[name]}"), name)
+    raise AttributeError(f"module 'nerf_lightning.capture' has no attribute {name!r}")

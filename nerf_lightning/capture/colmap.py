@@ -38,24 +38,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from nerf_lightning.capture.choices import CAMERA_MODELS, CAMERA_PARAMETERS, MAPPERS, MATCHERS  # noqa: F401 (also read from here)
 from nerf_lightning.capture.images import exif_focal_length, mask_name, natural_key
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 
 COLMAP_EXTRA = 'pip install -c constraints-cpu.txt -e ".[colmap]"'
-MATCHERS = ("auto", "exhaustive", "sequential")
-MAPPERS = ("auto", "global", "incremental")
 # exhaustive matching costs n^2 / 2 pairs: beyond this many images ``auto`` matches neighbours in name order
 EXHAUSTIVE_UP_TO = 100
-# COLMAP's parameters of each camera model this project's transforms.json loader reads, in COLMAP's order
-CAMERA_PARAMETERS = {
-    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
-    "PINHOLE": ("fl_x", "fl_y", "cx", "cy"),
-    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
-    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
-    "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
-}
-CAMERA_MODELS = tuple(CAMERA_PARAMETERS)
 
 
 def import_pycolmap() -> Any:

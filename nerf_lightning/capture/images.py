@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageOps
 
+from nerf_lightning.capture.choices import MASK_OBJECTS
 from nerf_lightning.data.images import downscale_mask, mask_channel, white_pixels
 from nerf_lightning.io import write_atomic
 
@@ -33,7 +34,6 @@ PIXEL_X, PIXEL_Y, FOCAL_PLANE_X_RESOLUTION, FOCAL_PLANE_UNIT = 0xA002, 0xA003, 0
 MILLIMETRES_A_UNIT = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 JPEG_QUALITY = 95
 # which mask pixels are the object: white (at least half white; non-zero in a mask of 0s and 1s) or black
-MASK_OBJECTS = ("white", "black")
 
 
 def natural_key(name: str) -> list:

@@ -6,7 +6,8 @@ takes (``split must be test or val, got 'nonsense'``), which :func:`~nerf_lightn
 Only the commands' top-level keys are checked here: the keys of the objects a config builds (``model.*``, ``data.*``,
 ``trainer.*``, ``callbacks.*``) are checked by those objects, and what needs the file system or the machine (a path
 that exists, a port that is free, a CUDA device that is there) where it is used. Nothing here imports torch: the
-name lists of modules that do are repeated below, and ``tests/cli/test_keys.py`` holds them equal to the originals.
+names a key takes come from their owners' torch-free modules (``data/choices.py``, ``capture/choices.py``,
+``outputs/choices.py``, ``devices.py``), which the modules that act on them read too.
 
 Hydra's parser reads ``360`` as the integer 360 and ``1e3`` as a float: a key that takes names compares ``str(value)``,
 and a key that takes an integer refuses a float.
@@ -22,21 +23,16 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-# as nerf_lightning.devices.DEVICE_CHOICES (that module loads torch); whether the machine has the device is checked
-# there, by resolve_device, when the command picks it
-DEVICE_CHOICES = "auto, cpu, cuda, cuda:<index> or mps"
+from nerf_lightning.capture.choices import CAMERA_MODELS, MAPPERS, MASK_OBJECTS, MATCHERS
+from nerf_lightning.data.choices import PROCEDURAL_MIN_VIEWS, RENDER_PATHS
+from nerf_lightning.devices import DEVICE_CHOICES
+from nerf_lightning.outputs.choices import EXPORT_FORMATS, MESH_FRAMES
+
+# a device's form; whether the machine has it is checked by devices.resolve_device when the command picks it
 DEVICE_FORM = re.compile(r"auto|cpu(:0)?|cuda(:\d+)?|mps(:0)?")
 SPLITS = ("test", "val")
-RENDER_PATHS = ("test", "orbit", "spiral")  # as nerf_lightning.data's render paths
-EXPORT_FORMATS = ("ply", "obj", "glb")  # the names of nerf_lightning.outputs.export.EXPORT_FORMATS (a test holds them equal)
-MESH_FRAMES = ("capture", "scene")
 VIZ_BACKENDS = ("png", "viser")
-MATCHERS = ("auto", "exhaustive", "sequential")  # as nerf_lightning.capture.colmap
-MAPPERS = ("auto", "global", "incremental")
-CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
-MASK_OBJECTS = ("white", "black")  # as nerf_lightning.capture.images
 SEED_RANGE = (0, 2**32 - 1)  # what Lightning's seed_everything and numpy take
-PROCEDURAL_MIN_VIEWS = 10  # as nerf_lightning.data.formats.procedural.make_procedural_scene
 
 
 def shown(value: Any) -> str:

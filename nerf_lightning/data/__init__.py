@@ -1,12 +1,32 @@
-"""Data: file formats -> Scene -> batches of pixels (image fields), rays (radiance fields) or views (whole images)."""
+"""Data: file formats -> Scene -> batches of pixels (image fields), rays (radiance fields) or views (whole images).
 
-from nerf_lightning.data.images import default_image, downscale, load_image, pixel_grid
-from nerf_lightning.data.pixels import PixelDataModule
-from nerf_lightning.data.points import SparsePoints
-from nerf_lightning.data.rays import RayDataModule
-from nerf_lightning.data.scene import Scene, Views
-from nerf_lightning.data.scene_data import SceneDataModule
-from nerf_lightning.data.views import ViewDataModule
+Its modules load when first asked for (``nerf_lightning.data.RayDataModule``, as the configs' ``_target_`` names
+them), so that the commands' key checks read :mod:`~nerf_lightning.data.choices` without loading torch."""
 
-__all__ = ["PixelDataModule", "RayDataModule", "Scene", "SceneDataModule", "SparsePoints", "ViewDataModule", "Views",
-           "default_image", "downscale", "load_image", "pixel_grid"]
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_HOMES = {
+    "PixelDataModule": "pixels", "RayDataModule": "rays", "Scene": "scene", "SceneDataModule": "scene_data",
+    "SparsePoints": "points", "ViewDataModule": "views", "Views": "scene", "default_image": "images",
+    "downscale": "images", "load_image": "images", "pixel_grid": "images",
+}
+
+__all__ = sorted(_HOMES)
+
+if TYPE_CHECKING:
+    from nerf_lightning.data.images import default_image, downscale, load_image, pixel_grid
+    from nerf_lightning.data.pixels import PixelDataModule
+    from nerf_lightning.data.points import SparsePoints
+    from nerf_lightning.data.rays import RayDataModule
+    from nerf_lightning.data.scene import Scene, Views
+    from nerf_lightning.data.scene_data import SceneDataModule
+    from nerf_lightning.data.views import ViewDataModule
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        return getattr(importlib.import_module(f"nerf_lightning.data.{_HOMES[name]}"), name)
+    raise AttributeError(f"module 'nerf_lightning.data' has no attribute {name!r}")

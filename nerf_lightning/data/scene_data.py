@@ -10,13 +10,13 @@ import torch
 from torch.utils.data import DataLoader
 
 from nerf_lightning.data.batches import HeldOutView, StepBatchesDataModule
+from nerf_lightning.data.choices import RENDER_PATHS  # noqa: F401 (also read from here)
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background, resolve_mode
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
 from nerf_lightning.geometry.space import SceneSpace
 
-RENDER_PATHS = ("test", "orbit", "spiral")
 
 
 def view_batch(views: Views, index: int, masks: str | None = None, background: torch.Tensor | None = None) -> HeldOutView:

@@ -14,7 +14,14 @@ class Field(Protocol):
     ``field(points, viewdirs)``: points (..., 3) and unit view directions (..., 3) -> ``{"rgb": (..., 3) in [0, 1],
     "density": (...,) >= 0}``, differentiable. ``field.density(points)``: (..., 3) -> (...,) densities, what
     occupancy grids, proposal samplers' checks and meshes query without a direction.
+
+    ``aabb``: (6,) the field's box in the field space, or None where it has none (an MLP over all of space).
+    ``appearance``: the per-image appearance embedding, or None; with one, the field is called
+    ``field(points, viewdirs, camera_indices)``.
     """
+
+    aabb: torch.Tensor | None
+    appearance: torch.nn.Module | None
 
     def __call__(self, points: torch.Tensor, viewdirs: torch.Tensor) -> dict[str, torch.Tensor]: ...
 

@@ -30,6 +30,7 @@ class NeRFField(nn.Module):
         density_activation: str = "relu",
     ) -> None:
         super().__init__()
+        self.aabb, self.appearance = None, None  # an MLP over all of space, one look for every image (the Field protocol)
         if density_activation not in ("relu", "softplus"):
             raise ValueError(f"density_activation must be relu or softplus, got '{density_activation}'")
         if skip_layer is not None and not 0 <= skip_layer < hidden_layers - 1:

@@ -84,7 +84,7 @@ class RadianceFieldModule(SceneModule):
         if train_background not in ("scene", "random"):
             raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
         self.train_background = train_background
-        if compile and (not self.renderer.fixed_shapes or getattr(sampler, "capacity", 0) is None):
+        if compile and (not self.renderer.fixed_shapes or (sampler.grid is not None and sampler.capacity is None)):
             raise ValueError("model.compile=true needs a training step of fixed shapes: model/renderer=table and, with "
                              "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
                              "depend on the data, so each would compile anew")
@@ -116,7 +116,7 @@ class RadianceFieldModule(SceneModule):
                                  f"the table's small gradients from vanishing in float16 (got trainer.precision={precision}); "
                                  "or use table_precision=bfloat16")
         scene = getattr(datamodule, "scene", None)
-        for per_view in (getattr(self.field, "appearance", None), self.camera_refinement):
+        for per_view in (self.field.appearance, self.camera_refinement):
             if per_view is not None and scene is not None:
                 per_view.resize(len(scene.train))
 
@@ -184,10 +184,9 @@ class RadianceFieldModule(SceneModule):
 
     def _box(self) -> torch.Tensor | None:
         """(6,) the field's box, or its occupancy grid's; None without one."""
-        for owner in (self.field, getattr(self.sampler, "grid", None)):
-            aabb = getattr(owner, "aabb", None)
-            if isinstance(aabb, torch.Tensor):
-                return aabb
+        for owner in (self.field, self.sampler.grid):
+            if owner is not None and owner.aabb is not None:
+                return owner.aabb
         return None
 
     def mesh_box(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -201,7 +200,7 @@ class RadianceFieldModule(SceneModule):
         names = {}
         if self._box() is not None:
             names["box"] = "Scene box"
-        if getattr(self.sampler, "grid", None) is not None:
+        if self.sampler.grid is not None:
             names["occupied_cells"] = "Occupied cells"
         return names
 
@@ -218,7 +217,7 @@ class RadianceFieldModule(SceneModule):
             edges = box_edges(low, high, (lambda p: p) if ndc is None else (lambda p: ndc.to_world(p.double())))
             return Overlay("Scene box", "lines", edges, (200, 40, 160), 2.0)
         if name == "occupied_cells":
-            grid = getattr(self.sampler, "grid", None)
+            grid = self.sampler.grid
             if grid is None:
                 return None
             centres, size = occupied_centres(grid, self.space)
@@ -229,7 +228,7 @@ class RadianceFieldModule(SceneModule):
         """The rays a step will vary from step to step (a sample budget, :class:`~nerf_lightning.models.ray_budget.RayBudget`):
         a compiled step then traces one graph for any ray count instead of one a count. Refused in one line where
         the sampler has no fixed capacity to fill."""
-        if getattr(self.sampler, "capacity", None) is None:
+        if self.sampler.capacity is None:
             raise ValueError("callbacks.ray_budget sizes the rays a step to an occupancy grid's model.sampler.capacity, and this "
                              "model has none: set one (as experiment=fast_blender_gpu does), or remove the callback")
         self.ray_count_varies = True
@@ -282,7 +281,7 @@ class RadianceFieldModule(SceneModule):
         extra_losses = self.sampler.losses(out["samples"], out, target)
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
-        appearance = getattr(self.field, "appearance", None)
+        appearance = self.field.appearance
         if appearance is not None:
             extra_losses.update(appearance.penalties())
         loss = mse + sum(extra_losses.values())

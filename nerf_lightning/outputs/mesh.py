@@ -10,10 +10,11 @@ import numpy as np
 import torch
 import trimesh
 
+from nerf_lightning.outputs.choices import EXPORT_FORMATS
 from nerf_lightning.io import to_uint8, write_atomic
 from nerf_lightning.models.contract import HasDensity
 
-FORMATS = ("ply", "obj", "glb")
+FORMATS = EXPORT_FORMATS  # a mesh can be written in each of them
 
 
 @torch.no_grad()

@@ -183,6 +183,7 @@ def test_frame_benchmark_skips_a_missing_checkpoint(tmp_path, small_scene_cache)
     assert result == {"skipped": f"checkpoint not found: {tmp_path / 'absent.ckpt'}"}
 
 
+@pytest.mark.slow  # COLMAP on fox photos (half a minute): out of CI; tests/capture/test_process_data.py poses them there
 def test_process_data_benchmark_poses_a_few_photos_or_skips(tmp_path, small_scene_cache):
     missing = run_script("bench_process_data.py", "--root", str(tmp_path / "absent"), cache=small_scene_cache)
     assert list(missing) == ["skipped"]

@@ -83,7 +83,7 @@ def test_a_checkout_with_uncommitted_changes_is_refused_unless_allowed(tmp_path,
     from nerf_lightning.bench import machine, runner
     from nerf_lightning.bench.suite import load_suite
 
-    monkeypatch.setattr(machine, "source_revision", lambda: "abc1234+dirty")
+    monkeypatch.setattr(machine, "source_revision", lambda ignore=(): "abc1234+dirty")
     suite_file = tmp_path / "quick.yaml"
     suite_file.write_text("device: cpu\nrows:\n  - {scene: procedural, preset: fast, minutes: 0.25}\n")
     suite = load_suite(str(suite_file))
@@ -114,3 +114,12 @@ def test_bad_arguments_are_answered_in_one_line(tmp_path):
     (tmp_path / "results" / "cpu.json").write_text("{not json")
     result = bench("report", "--results", "results", cwd=tmp_path)
     assert result.returncode == 2 and "results/cpu.json is not a results JSON" in result.stderr
+
+
+def test_what_the_runner_writes_does_not_make_the_checkout_dirty(tmp_path):
+    from nerf_lightning.bench.machine import changed_files
+
+    status = " M docs/results/cpu.json\n M README.md\n M nerf_lightning/models/splat.py\nR  a.py -> docs/results.md\n"
+    written = [tmp_path / "docs" / "results", tmp_path / "README.md", tmp_path / "docs" / "results.md"]
+    assert changed_files(status, tmp_path, written) == [(tmp_path / "nerf_lightning" / "models" / "splat.py").resolve()]
+    assert len(changed_files(status, tmp_path)) == 4

@@ -5,6 +5,7 @@ import sys
 
 import imageio.v3 as iio
 import numpy as np
+import pytest
 import torch
 import yaml
 
@@ -12,6 +13,7 @@ from tests.cli.test_train import TINY
 from tests.conftest import run_cli
 
 
+@pytest.mark.slow  # a training and two renders (half a minute): out of CI, which renders a run in the other tests here
 def test_train_then_render_from_the_checkpoint(tmp_path):
     run = tmp_path / "run"
     run_cli("train", *TINY, f"hydra.run.dir={run}", cwd=tmp_path)

@@ -64,6 +64,7 @@ def test_an_unbounded_capture_trains_with_a_contracted_field(trained):
     assert 0.0 < model.sampler.grid.binary.float().mean() < 1.0
 
 
+@pytest.mark.slow  # two evaluations (half a minute): out of CI
 def test_eval_on_a_second_file_of_the_capture_matches_the_held_out_split(trained, capture, tmp_path):
     run, _ = trained
     root, _ = capture

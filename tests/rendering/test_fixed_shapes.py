@@ -9,6 +9,7 @@ import torch
 
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler, RoundsRenderer, TableRenderer
+from nerf_lightning.rendering.march_fixed import march_rays_fixed
 from nerf_lightning.rendering.occupancy import march_rays
 from nerf_lightning.rendering.packed import RaySamples
 from nerf_lightning.syncs import HOST_DATA
@@ -24,13 +25,13 @@ def test_a_fixed_capacity_holds_the_same_steps_in_order_then_padding_of_zero_wid
     variable = OccupancyGridSampler(grid, step_size=0.05).sample(rays, space, None, perturb=False)
     t_enter, t_exit = space.ray_range(rays, grid.aabb)
     reach = 2.0 * 3.0**0.5  # the unit box's diagonal
-    fixed = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=len(variable) + 50, reach=reach)
+    fixed = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=len(variable) + 50, reach=reach)
     real = fixed.t_ends > fixed.t_starts
     assert int(real.sum()) == len(variable) and bool(real[: len(variable)].all()) and not bool(real[len(variable):].any())
     for name in ("ray_indices", "t_starts", "t_ends"):
         torch.testing.assert_close(getattr(fixed, name)[: len(variable)], getattr(variable, name))
     assert bool((fixed.ray_indices[len(variable):] == 100).all()) and bool(fixed.extras["complete"].all())
-    short = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=len(variable) // 2, reach=reach)
+    short = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=len(variable) // 2, reach=reach)
     cut = int(short.ray_indices[-1])
     assert short.extras["complete"].tolist() == [ray < cut for ray in range(100)]
 
@@ -46,7 +47,7 @@ def test_the_density_pass_keeps_what_the_variable_march_keeps_in_a_fixed_capacit
     variable = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, **options)
     everything = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False)
     assert len(variable) < 0.6 * len(everything)  # the steps behind the ball are dropped
-    fixed = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, capacity=len(variable) + 10, reach=2.0 * 3.0**0.5,
+    fixed = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, capacity=len(variable) + 10, reach=2.0 * 3.0**0.5,
                        march_capacity=len(everything) + 10, **options)
     for name in ("ray_indices", "t_starts", "t_ends"):
         torch.testing.assert_close(getattr(fixed, name)[: len(variable)], getattr(variable, name))
@@ -60,14 +61,14 @@ def test_rays_that_fit_counts_what_the_rays_held_whole_want():
     t_enter, t_exit = space.ray_range(space.rays(rays_o, rays_d), grid.aabb)
     reach = 2.0 * 3.0**0.5
     wanted = len(march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False))  # every occupied step of the 400 rays
-    whole = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted + 10, reach=reach)
+    whole = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted + 10, reach=reach)
     assert float(whole.extras["rays_that_fit"]) == pytest.approx((wanted + 10) * 400 / wanted)
     # a quarter of what they want: the estimate from the rays held whole (the first ones), near the whole batch's
-    short = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 4, reach=reach)
+    short = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 4, reach=reach)
     assert float(short.extras["rays_that_fit"]) == pytest.approx((wanted // 4) * 400 / wanted, rel=0.3)
     # with the density pass: the fewer of the two buffers' counts
     field = BallField()
-    pruned = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 8, reach=reach,
+    pruned = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 8, reach=reach,
                         march_capacity=wanted + 10, density_fn=field.density, alpha_threshold=1e-3, early_stop_eps=1e-4)
     kept = len(march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, density_fn=field.density, alpha_threshold=1e-3,
                           early_stop_eps=1e-4))
@@ -92,9 +93,10 @@ def test_the_march_never_asks_its_field_space_map_for_its_truth():
     space = SceneSpace(2.0, 6.0)
     t_enter, t_exit = space.ray_range(space.rays(rays_o, rays_d), grid.aabb)
     options = {"density_fn": BallField().density, "alpha_threshold": 1e-3, "early_stop_eps": 1e-4}
-    for extra in ({}, {"capacity": 4096, "reach": 2.0 * 3.0**0.5}, {"capacity": 4096, "reach": 2.0 * 3.0**0.5, "march_capacity": 8192}):
-        with_map = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, to_field=NoTruth(), **options, **extra)
-        without = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, **options, **extra)
+    for march, extra in ((march_rays, {}), (march_rays_fixed, {"capacity": 4096, "reach": 2.0 * 3.0**0.5}),
+                         (march_rays_fixed, {"capacity": 4096, "reach": 2.0 * 3.0**0.5, "march_capacity": 8192})):
+        with_map = march(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, to_field=NoTruth(), **options, **extra)
+        without = march(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, **options, **extra)
         torch.testing.assert_close(with_map.t_starts, without.t_starts)
 
 
@@ -107,7 +109,7 @@ def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampl
     rays = space.rays(rays_o, rays_d)
     if sampler == "occupancy":  # the rounds render the variable march, the table its fixed-capacity twin (padded)
         t_enter, t_exit = space.ray_range(rays, grid.aabb)
-        table_samples = march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, capacity=20_000, reach=2.0 * 3.0**0.5)
+        table_samples = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, capacity=20_000, reach=2.0 * 3.0**0.5)
         round_samples = OccupancyGridSampler(grid, step_size=0.02).sample(rays, space, field, perturb=False)
     else:
         t = torch.linspace(2.0, 6.0, 65)

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerf_lightning.data.choices import PROCEDURAL_MIN_VIEWS
 from nerf_lightning.data.formats.blender import load_blender
 from nerf_lightning.data.formats.shared import default_cache, rendered_once
 from nerf_lightning.data.scene import Scene
@@ -147,8 +148,8 @@ def split_of(index: int) -> str:
 def make_procedural_scene(root: str | Path, n_views: int = 100, size: int = 100, fov_degrees: float = 50.0) -> Path:
     """Render the procedural scene into ``root`` in the Blender layout; returns ``root``."""
     root = Path(root)
-    if n_views < 10:
-        raise ValueError(f"the procedural scene needs at least 10 views (for its val and test splits), got {n_views}")
+    if n_views < PROCEDURAL_MIN_VIEWS:
+        raise ValueError(f"the procedural scene needs at least {PROCEDURAL_MIN_VIEWS} views (for its val and test splits), got {n_views}")
     angle = math.radians(fov_degrees)
     focal = 0.5 * size / math.tan(0.5 * angle)
     c2w = look_at(camera_positions(n_views))  # OpenCV

@@ -21,7 +21,18 @@ from nerf_lightning.rendering.packed import RaySamples
 
 
 class RaySampler(nn.Module):
-    """The interface every sampler implements (nerfacc's ``AbstractEstimator``, nerfstudio's ``Sampler``)."""
+    """The interface every sampler implements (nerfacc's ``AbstractEstimator``, nerfstudio's ``Sampler``).
+
+    ``grid``: the occupancy grid a sampler marches through (drawn by the viewer), None for the others.
+    ``capacity``: the fixed number of samples of a training step (a step of fixed shapes), None where it varies.
+    """
+
+    capacity: int | None = None
+
+    def __init__(self) -> None:
+        super().__init__()
+        # an instance attribute, not a class one: a subclass's grid module must not be shadowed by the class's None
+        self.grid: nn.Module | None = None
 
     def sample(self, rays: Rays, space: SceneSpace, field: Field, perturb: bool) -> RaySamples:
         """Samples of ``rays`` (in ``space``'s sampling space) for ``field``; jittered when ``perturb`` (training).

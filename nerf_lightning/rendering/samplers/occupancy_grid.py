@@ -6,6 +6,7 @@ import torch
 
 from nerf_lightning.fields.base import Field
 from nerf_lightning.geometry.space import Rays, SceneSpace
+from nerf_lightning.rendering.march_fixed import march_rays_fixed
 from nerf_lightning.rendering.occupancy import OccupancyGrid, march_rays
 from nerf_lightning.rendering.samplers.base import RaySampler, RaySamples
 
@@ -49,12 +50,16 @@ class OccupancyGridSampler(RaySampler):
         capacity = self.capacity if perturb and torch.is_grad_enabled() else None
         if capacity is not None and (space.contraction is not None or space.ndc is not None):
             raise ValueError("model.sampler.capacity needs a scene space without contraction or NDC (its steps' reach is the grid's box)")
-        prune = self.alpha_threshold > 0 or (capacity is not None and self.march_capacity is not None)
-        return march_rays(
-            self.grid, rays.origins, rays.directions, t_enter, t_exit, self.step_size, perturb, self.cone_angle, space.to_field,
-            density_fn=field.density if prune else None, alpha_threshold=self.alpha_threshold,
-            early_stop_eps=self.early_stop_eps if capacity is not None and self.march_capacity is not None else 0.0,
-            capacity=capacity, reach=self.reach, march_capacity=self.march_capacity,
+        if capacity is None:  # as many samples as the rays have
+            return march_rays(self.grid, rays.origins, rays.directions, t_enter, t_exit, self.step_size, perturb,
+                              self.cone_angle, space.to_field, density_fn=field.density if self.alpha_threshold > 0 else None,
+                              alpha_threshold=self.alpha_threshold)
+        prune = self.alpha_threshold > 0 or self.march_capacity is not None
+        return march_rays_fixed(
+            self.grid, rays.origins, rays.directions, t_enter, t_exit, self.step_size, perturb, capacity=capacity,
+            reach=self.reach, to_field=space.to_field, density_fn=field.density if prune else None,
+            alpha_threshold=self.alpha_threshold, early_stop_eps=self.early_stop_eps if self.march_capacity is not None else 0.0,
+            march_capacity=self.march_capacity,
         )
 
     def update(self, step: int, field: Field) -> None:

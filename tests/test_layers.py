@@ -12,7 +12,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "nerf_lightning"
 # bottom to top; a module may import its own layer's and lower ones'. The name is the first part below the package
 # (a subpackage or a root module); "" is the package's own __init__.
 LAYERS = [
-    {"", "errors", "io", "compiling", "devices", "metrics", "config", "parameters", "conf"},
+    {"", "errors", "io", "compiling", "devices", "metrics", "config", "parameters", "conf", "lazy"},
     {"plots", "video", "syncs", "geometry", "checkpoints"},
     {"data", "fields"},
     {"rendering", "splats", "capture"},

@@ -6,8 +6,9 @@ without loading torch or pycolmap."""
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from nerf_lightning.lazy import lazy_attributes
 
 _HOMES = {"compare_with_reference": "compare", "format_report": "process", "process_capture": "process"}
 
@@ -18,7 +19,4 @@ if TYPE_CHECKING:
     from nerf_lightning.capture.process import format_report, process_capture
 
 
-def __getattr__(name: str) -> Any:
-    if name in _HOMES:
-        return getattr(importlib.import_module(f"nerf_lightning.capture.{_HOMES[name]}"), name)
-    raise AttributeError(f"module 'nerf_lightning.capture' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _HOMES)

@@ -5,8 +5,9 @@ them), so that the commands' key checks read :mod:`~nerf_lightning.data.choices`
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from nerf_lightning.lazy import lazy_attributes
 
 _HOMES = {
     "PixelDataModule": "pixels", "RayDataModule": "rays", "Scene": "scene", "SceneDataModule": "scene_data",
@@ -26,7 +27,4 @@ if TYPE_CHECKING:
     from nerf_lightning.data.views import ViewDataModule
 
 
-def __getattr__(name: str) -> Any:
-    if name in _HOMES:
-        return getattr(importlib.import_module(f"nerf_lightning.data.{_HOMES[name]}"), name)
-    raise AttributeError(f"module 'nerf_lightning.data' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _HOMES)

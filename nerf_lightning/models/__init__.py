@@ -7,8 +7,9 @@ a model through, loads none of the models.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from nerf_lightning.lazy import lazy_attributes
 
 _HOMES = {"ImageFieldModule": "image_field", "RadianceFieldModule": "radiance_field", "SplatModule": "splat"}
 
@@ -20,7 +21,4 @@ if TYPE_CHECKING:
     from nerf_lightning.models.splat import SplatModule
 
 
-def __getattr__(name: str) -> Any:
-    if name in _HOMES:
-        return getattr(importlib.import_module(f"nerf_lightning.models.{_HOMES[name]}"), name)
-    raise AttributeError(f"module 'nerf_lightning.models' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _HOMES)

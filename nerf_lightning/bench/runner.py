@@ -8,7 +8,7 @@
 
 For each row of the suite (scene x preset x minutes x seed, :mod:`nerf_lightning.bench.suite`): ``nerf-train``
 trains the preset for that many minutes of training time (validation off), keeping a checkpoint at each of the
-row's minute marks; ``nerf-eval`` scores every mark on the held-out views (PSNR, SSIM, seconds a frame). The row,
+row's minute marks; ``nerf-eval`` scores every mark on the held-out views (PSNR, SSIM, LPIPS where its weights are here, seconds a frame). The row,
 with the machine, the versions, the date and the exact commands, is written into ``<results>/<suite>.json`` as soon
 as it is measured, and the results table regenerated.
 """
@@ -133,7 +133,7 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path, written:
         run_logged("nerf-eval", eval_arguments(row, Path(mark["path"]), output_dir), output_dir / "eval.log")
         scored = json.loads((output_dir / "eval.json").read_text())
         curve.append({"minutes": mark["minutes"], "step": mark["step"], "training_seconds": mark["training_seconds"],
-                      "psnr": scored["mean"].get("psnr"), "ssim": scored["mean"].get("ssim"),
+                      "psnr": scored["mean"].get("psnr"), "ssim": scored["mean"].get("ssim"), "lpips": scored["mean"].get("lpips"),
                       "psnr_masked": scored["mean"].get("psnr_masked"), "depth_error": scored["mean"].get("depth_error"), "seconds_per_frame": scored.get("seconds_per_frame"),
                       "views": scored["views"], "frame_size": scored.get("frame_size")})
     last = curve[-1]
@@ -146,7 +146,7 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path, written:
         "data": row.data, "overrides": list(row.overrides), "device": row.device,
         "steps": last["step"], "training_minutes": round(last["training_seconds"] / 60, 2),
         "seconds_per_step": round(last["training_seconds"] / max(last["step"], 1), 4),
-        "psnr": last["psnr"], "ssim": last["ssim"], "psnr_masked": last["psnr_masked"], "depth_error": last["depth_error"],
+        "psnr": last["psnr"], "ssim": last["ssim"], "lpips": last["lpips"], "psnr_masked": last["psnr_masked"], "depth_error": last["depth_error"],
         "seconds_per_frame": last["seconds_per_frame"], "frame_size": last["frame_size"], "views": last["views"],
         **step_figures(metrics), "curve": curve,
         "wall_seconds": round(time.perf_counter() - started, 1), "wall_seconds_training": round(wall_train, 1),

@@ -1,5 +1,5 @@
 """nerf-eval: render every held-out view of a trained model's scene (or of a second capture file, ``root=``) and
-write eval.json with PSNR, SSIM and depth error (:mod:`nerf_lightning.outputs.evaluation`)."""
+write eval.json with PSNR, SSIM, LPIPS (where its weights can be had) and depth error (:mod:`nerf_lightning.outputs.evaluation`)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ def evaluate(cfg: DictConfig) -> dict:
     from nerf_lightning.outputs.evaluation import evaluate_checkpoint
 
     ensure_writable(cfg.output_dir, "output_dir")
-    return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views, cfg.device, trust=cfg.trust_checkpoint)
+    return evaluate_checkpoint(cfg.ckpt_path, cfg.output_dir, cfg.split, cfg.get("root"), cfg.max_views, cfg.device, trust=cfg.trust_checkpoint,
+                               lpips=str(cfg.eval.lpips), lpips_weights=cfg.eval.get("lpips_weights"))
 
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="eval")

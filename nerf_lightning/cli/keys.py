@@ -24,9 +24,9 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from nerf_lightning.capture.choices import CAMERA_MODELS, MAPPERS, MASK_OBJECTS, MATCHERS
-from nerf_lightning.data.choices import PROCEDURAL_MIN_VIEWS, RENDER_PATHS
+from nerf_lightning.data.choices import PROCEDURAL_MIN_VIEWS, RENDER_PATHS, is_camera_path_file
 from nerf_lightning.devices import DEVICE_CHOICES
-from nerf_lightning.outputs.choices import EXPORT_FORMATS, MESH_FRAMES
+from nerf_lightning.outputs.choices import EXPORT_FORMATS, LPIPS_MODES, MESH_FRAMES
 
 # a device's form; whether the machine has it is checked by devices.resolve_device when the command picks it
 DEVICE_FORM = re.compile(r"auto|cpu(:0)?|cuda(:\d+)?|mps(:0)?")
@@ -187,7 +187,9 @@ def check_render_keys(cfg: DictConfig) -> None:
     check_bool(cfg, "trust_checkpoint")
     check_device(cfg)
     check_number(cfg, "render.scale", above=0.0)
-    check_choice(cfg, "render.path", RENDER_PATHS)
+    if not is_camera_path_file(value_of(cfg, "render.path")):
+        check_choice(cfg, "render.path", (*RENDER_PATHS, "a camera path file (.json)"))
+    check_text(cfg, "render.dataparser_transforms", "nerfstudio's dataparser_transforms.json", null=True)
     check_integer(cfg, "render.frames", 2)
     check_number(cfg, "render.fps", above=0.0)
     check_colormap(cfg, "render.depth_colormap")
@@ -199,6 +201,8 @@ def check_eval_keys(cfg: DictConfig) -> None:
     check_choice(cfg, "split", SPLITS)
     check_text(cfg, "root", "a transforms.json (or its folder) of the same capture", null=True)
     check_integer(cfg, "max_views", 1, null=True)
+    check_choice(cfg, "eval.lpips", LPIPS_MODES)
+    check_text(cfg, "eval.lpips_weights", "a file of AlexNet's and LPIPS's weights", null=True)
 
 
 def check_view_keys(cfg: DictConfig) -> None:

@@ -28,7 +28,8 @@ def render(cfg: DictConfig) -> list[Path]:
     output_dir = ensure_writable(cfg.output_dir, "output_dir")
     scale = float(cfg.render.scale)
     if implements(model, RendersCamera):
-        return render_camera_path(model, info["config"], output_dir, cfg.render.path, cfg.render.frames, scale, cfg.render.fps, cfg.render.depth_colormap)
+        return render_camera_path(model, info["config"], output_dir, cfg.render.path, cfg.render.frames, scale, cfg.render.fps, cfg.render.depth_colormap,
+                                  cfg.render.get("dataparser_transforms"))
     if implements(model, RendersImage):
         image = model.render_image(scale)
         path = write_png(output_dir / f"rgb_scale{scale:g}.png", image)

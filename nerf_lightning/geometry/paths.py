@@ -1,10 +1,13 @@
-"""Camera paths for novel-view videos: an orbit or a spiral around where the training cameras look."""
+"""Camera paths for novel-view videos: an orbit or a spiral around where the training cameras look, or a path through
+keyframes a user framed (:func:`keyframe_path`)."""
 
 from __future__ import annotations
 
 import math
 
 import torch
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
+from kornia.geometry.quaternion import Quaternion
 
 from nerf_lightning.geometry.cameras import look_at
 
@@ -81,3 +84,36 @@ def spiral_path(c2w: torch.Tensor, n_frames: int = 60, turns: int = 2, swing_deg
 def _cameras_on_sphere(centre, up, e1, e2, radius, theta, phi) -> torch.Tensor:
     directions = torch.cos(phi)[:, None] * (torch.cos(theta)[:, None] * e1 + torch.sin(theta)[:, None] * e2) + torch.sin(phi)[:, None] * up
     return look_at(centre + radius * directions, target=centre, up=up)
+
+
+def keyframe_path(c2w: torch.Tensor, fov_degrees: torch.Tensor, n_frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n_frames`` cameras through K >= 2 keyframes, c2w (K, 4, 4) and vertical fields of view ``fov_degrees`` (K,),
+    each keyframe an equal share of the time, the first frame the first keyframe and the last the last:
+    -> c2w (n_frames, 4, 4), fov (n_frames,).
+
+    Positions follow a Catmull-Rom spline through the keyframes (smooth at each, the end keyframes repeated for the
+    end tangents), rotations are spherically interpolated between consecutive keyframes (kornia's ``slerp``, the
+    shorter arc), and the field of view linearly. The matrices' convention (OpenCV or OpenGL) is kept."""
+    if c2w.ndim != 3 or c2w.shape[1:] != (4, 4) or len(c2w) < 2:
+        raise ValueError(f"a keyframe path needs at least two keyframes of shape (4, 4), got {tuple(c2w.shape)}")
+    if fov_degrees.shape != (len(c2w),):
+        raise ValueError(f"a keyframe path needs one field of view a keyframe: {len(c2w)} keyframes, fov of shape {tuple(fov_degrees.shape)}")
+    if n_frames < 2:
+        raise ValueError(f"a keyframe path needs at least 2 frames, got {n_frames}")
+    c2w, fov_degrees = c2w.double(), fov_degrees.double()
+    last = len(c2w) - 1
+    u = torch.linspace(0.0, float(last), n_frames, dtype=torch.float64)
+    segment = u.floor().long().clamp(max=last - 1)  # frame f lies between keyframes segment[f] and segment[f] + 1
+    t = (u - segment)[:, None]
+    positions = c2w[:, :3, 3]
+    padded = torch.cat([positions[:1], positions, positions[-1:]])  # p_{-1} = p_0, p_{K} = p_{K-1}
+    p0, p1, p2, p3 = (padded[segment + k] for k in range(4))
+    # the uniform Catmull-Rom segment between p1 and p2: through both, tangents (p2 - p0) / 2 and (p3 - p1) / 2
+    position = 0.5 * ((2.0 * p1) + (p2 - p0) * t + (2.0 * p0 - 5.0 * p1 + 4.0 * p2 - p3) * t**2 + (3.0 * p1 - p0 - 3.0 * p2 + p3) * t**3)
+    quaternions = rotation_matrix_to_quaternion(c2w[:, :3, :3].contiguous())  # (K, 4) wxyz
+    start, end = Quaternion(quaternions[segment]), Quaternion(quaternions[segment + 1])
+    rotation = start.slerp(end, t[:, 0]).matrix()
+    out = torch.eye(4, dtype=torch.float64).repeat(n_frames, 1, 1)
+    out[:, :3, :3], out[:, :3, 3] = rotation, position
+    fov = fov_degrees[segment] + (fov_degrees[segment + 1] - fov_degrees[segment]) * t[:, 0]
+    return out.float(), fov.float()

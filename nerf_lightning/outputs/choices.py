@@ -1,5 +1,5 @@
-"""The names nerf-export's keys take, torch-free, so that the command checks a key (``nerf_lightning.cli.keys``)
-before torch loads; the modules that act on them import them from here."""
+"""The names nerf-export's and nerf-eval's keys take, torch-free, so that the commands check a key
+(``nerf_lightning.cli.keys``) before torch loads; the modules that act on them import them from here."""
 
 from __future__ import annotations
 
@@ -7,3 +7,5 @@ from __future__ import annotations
 EXPORT_FORMATS = ("ply", "obj", "glb")
 # frame=: the coordinates a mesh is written in: the capture's own (its transforms.json or poses) or the scene's
 MESH_FRAMES = ("capture", "scene")
+# eval.lpips=: where LPIPS's weights come from (nerf_lightning.outputs.lpips.load_lpips)
+LPIPS_MODES = ("auto", "download", "off")

@@ -1,4 +1,5 @@
-"""Evaluating a trained model (any that renders a camera) on held-out views: PSNR, SSIM and depth error per view and on average.
+"""Evaluating a trained model (any that renders a camera) on held-out views: PSNR, SSIM, LPIPS (where its weights
+can be had: :mod:`nerf_lightning.outputs.lpips`) and depth error per view and on average.
 
 ``root=<transforms.json>`` evaluates on views captured separately instead: a second file of the same capture
 (instant-ngp / nerfstudio / Blender layout), loaded into the trained scene's world with the similarity the
@@ -22,6 +23,7 @@ from nerf_lightning.data.masks import resolve_mode
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.data.scene_data import view_batch
 from nerf_lightning.io import write_json, write_png
+from nerf_lightning.outputs.lpips import LPIPS, load_lpips
 from nerf_lightning.metrics import image_metrics
 from nerf_lightning.models.contract import RendersCamera, require
 from nerf_lightning.outputs.frames import render_frame
@@ -61,12 +63,13 @@ def views_to_evaluate(model: RendersCamera, config: dict, split: str = "test", r
 
 
 def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None = None, masks: str | None = None,
-                   background: torch.Tensor | None = None) -> list[dict[str, Any]]:
+                   background: torch.Tensor | None = None, lpips: LPIPS | None = None) -> list[dict[str, Any]]:
     """Render ``views`` (with images) and score each with :func:`~nerf_lightning.metrics.image_metrics`, timing each
     render (``seconds``: the first view's includes any one-off compilation); with
     ``output_dir``, the renders go to ``images/<view>_rgb.png`` and ``_depth.png`` there. With a ``masks`` mode and
     masks, each view is scored over the whole image (with ``background``, the photo composited onto ``background``
-    outside its mask, as training saw it) and over its mask alone (``psnr_masked``, ``ssim_masked``)."""
+    outside its mask, as training saw it) and over its mask alone (``psnr_masked``, ``ssim_masked``). With ``lpips``,
+    each view's ``lpips`` too (over the whole image)."""
     rows = []
     for index in tqdm(range(len(views)), desc=f"evaluating {len(views)} views", unit="view"):
         started = time.perf_counter()
@@ -76,6 +79,8 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
         batch = view_batch(views, index, masks, background)  # the target as validation sees it
         target, mask = batch["image"], batch.get("object_mask")
         metrics = image_metrics(frame["rgb"], target, frame["depth"] if true_depth is not None else None, true_depth, mask)
+        if lpips is not None:
+            metrics["lpips"] = lpips(frame["rgb"].clamp(0.0, 1.0), target)
         rows.append({"view": views.names[index], **{key: float(value) for key, value in metrics.items()}, "seconds": round(seconds, 4)})
         if output_dir is not None:
             stem = Path(views.names[index]).stem
@@ -86,7 +91,7 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
 
 def mean_metrics(rows: list[dict[str, Any]]) -> dict[str, float]:
     """The mean of each metric over the views (depth error over the views where it is defined)."""
-    keys = [key for key in ("psnr", "ssim", "psnr_masked", "ssim_masked", "depth_error") if any(key in row for row in rows)]
+    keys = [key for key in ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "depth_error") if any(key in row for row in rows)]
     mean = {}
     for key in keys:
         values = [row[key] for row in rows if key in row and row[key] == row[key]]  # NaN: a view with no surface
@@ -96,20 +101,30 @@ def mean_metrics(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 
 def evaluate_checkpoint(ckpt_path: str | Path, output_dir: str | Path, split: str = "test", root: str | Path | None = None,
-                        max_views: int | None = None, device: str = "cpu", trust: bool = False) -> dict[str, Any]:
+                        max_views: int | None = None, device: str = "cpu", trust: bool = False, lpips: str = "auto",
+                        lpips_weights: str | Path | None = None) -> dict[str, Any]:
     """Evaluate the model of a checkpoint (any that renders a camera; see :func:`views_to_evaluate`); writes
     ``eval.json`` and the renders into ``output_dir`` and returns what eval.json holds. Rendered on ``device`` (auto,
-    cpu, cuda, mps); ``trust``: see :func:`~nerf_lightning.checkpoints.read_checkpoint`."""
+    cpu, cuda, mps); ``trust``: see :func:`~nerf_lightning.checkpoints.read_checkpoint`; ``lpips`` and
+    ``lpips_weights``: see :func:`~nerf_lightning.outputs.lpips.load_lpips` (without weights, eval.json says why LPIPS is
+    absent, and the log says it once)."""
+    network, lpips_said = load_lpips(lpips, lpips_weights)  # before the model: a wrong weights file is said at once
+    if network is None and lpips != "off":
+        log.warning("%s", lpips_said)
     model, info = load_model(ckpt_path, device, trust=trust)
+    if network is not None:
+        network.to(model.device)
     require(model, RendersCamera, "nerf-eval", "a model that renders a camera")
     output_dir = Path(output_dir)
     views, masks, background = views_to_evaluate(model, info["config"], split, root)
     if max_views:
         views = views.subset(evenly_spaced(len(views), max_views))
-    rows = evaluate_views(model, views, output_dir, masks, background)
+    rows = evaluate_views(model, views, output_dir, masks, background, network)
     result = {"checkpoint": str(Path(ckpt_path).resolve()), "step": info["global_step"], "split": split,
               "scene": str(Path(root).resolve()) if root else "the run's own", "views": len(rows), "frame_size": [views.height, views.width],
-              "mean": mean_metrics(rows), "masks": MASKS_SAID.get(masks, MASKS_SAID[None]), "seconds_per_frame": statistics.median(row["seconds"] for row in rows) if rows else None,
+              "mean": mean_metrics(rows), "masks": MASKS_SAID.get(masks, MASKS_SAID[None]),
+              "lpips": {"network": "LPIPS 0.1, AlexNet", "weights": lpips_said} if network is not None else {"skipped": lpips_said},
+              "seconds_per_frame": statistics.median(row["seconds"] for row in rows) if rows else None,
               "device": str(model.device), "per_view": rows}
     write_json(output_dir / "eval.json", result)
     log.info("%d views: %s -> %s", len(rows), ", ".join(f"{k} {v:.4f}" for k, v in result["mean"].items()), output_dir / "eval.json")

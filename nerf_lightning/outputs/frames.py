@@ -12,6 +12,8 @@ import torch
 from tqdm import tqdm
 
 from nerf_lightning.checkpoints import load_run_data
+from nerf_lightning.data.choices import is_camera_path_file
+from nerf_lightning.data.formats.camera_path import read_camera_path
 from nerf_lightning.data.formats.transforms import transforms_meta
 from nerf_lightning.data.scene import Views
 from nerf_lightning.geometry.space import SceneSpace
@@ -73,10 +75,19 @@ def write_path_renders(model: RendersCamera, views: Views, output_dir: Path, fps
 
 
 def render_camera_path(model: RendersCamera, config: dict, output_dir: str | Path, path: str = "orbit", frames: int = 60, scale: float = 1.0,
-                       fps: float = 20.0, depth_colormap: str = "grey") -> list[Path]:
+                       fps: float = 20.0, depth_colormap: str = "grey", dataparser_transforms: str | Path | None = None) -> list[Path]:
     """Rebuild the camera ``path`` (test, orbit or spiral; ``frames`` of a generated one) of the run whose resolved
-    ``config`` a checkpoint carries, at ``scale`` times its size, and :func:`write_path_renders` it into ``output_dir``."""
-    views = load_run_data(config).render_views(path, frames).scaled(scale)
-    written = write_path_renders(model, views, Path(output_dir), fps, depth_colormap, desc=f"{path} path")
-    log.info("wrote %d %dx%d frames of the %s path to %s", len(views), views.width, views.height, path, output_dir)
+    ``config`` a checkpoint carries, or read a camera path file (:mod:`~nerf_lightning.data.formats.camera_path`:
+    at its size and frames a second; ``dataparser_transforms`` for one in nerfstudio's normalised world), at ``scale``
+    times its size, and :func:`write_path_renders` it into ``output_dir``."""
+    if is_camera_path_file(path):
+        world_from_capture = model.space.world_from_capture
+        world_from_capture = None if world_from_capture is None else world_from_capture.cpu()
+        views, file_fps = read_camera_path(path, world_from_capture, dataparser_transforms)
+        fps, name = file_fps or fps, Path(path).name
+    else:
+        views, name = load_run_data(config).render_views(path, frames), f"{path} path"
+    views = views.scaled(scale)
+    written = write_path_renders(model, views, Path(output_dir), fps, depth_colormap, desc=name)
+    log.info("wrote %d %dx%d frames of %s to %s", len(views), views.width, views.height, name, output_dir)
     return written

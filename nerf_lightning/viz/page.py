@@ -6,7 +6,8 @@ each; none for a model that offers nothing), and, for a model of Gaussians
 (:class:`~nerf_lightning.models.contract.HasGaussians`), the Gaussians themselves drawn by the browser
 (:mod:`nerf_lightning.viz.splats`). The controls: what draws the view of a model of Gaussians (the browser's splats,
 or rendered frames), what a frame shows (rgb, depth, accumulation), the largest height of a frame, the render path
-and its Render-to-GIF button, a line on the last frame (or the splats) and one on training.
+and its Render-to-GIF button, the camera path a user frames (:mod:`~nerf_lightning.viz.keyframes`: keyframes, a preview,
+camera_path.json), a line on the last frame (or the splats) and one on training.
 
 The page renders nothing: it tells its owner what changed through the callbacks it is given.
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -22,6 +24,7 @@ import torch
 from nerf_lightning.data.scene_data import RENDER_PATHS
 from nerf_lightning.data.scene import Views
 from nerf_lightning.models.contract import HasGaussians, Overlay, ShowsOverlays, implements
+from nerf_lightning.viz.keyframes import KeyframePanel
 from nerf_lightning.viz.splats import SplatArrays
 from nerf_lightning.viz.viser_view import add_training_cameras, scene_frame
 
@@ -49,11 +52,12 @@ class ViewerPage:
         on_render_path: called with (path, frames, scale) when the Render-to-GIF button is pressed.
         on_drawn_by_changed: called when "Drawn by" changes (a model of Gaussians), after the page has shown or
             hidden the splats.
+        camera_paths_dir: where the "Camera path" folder saves camera_path.json (None: the working directory).
     """
 
     def __init__(self, server, model, train_views: Views, render_views: Callable[[str, int], Views], max_resolution: int,
                  on_view_changed: Callable[[], None], on_render_path: Callable[[str, int, float], None],
-                 on_drawn_by_changed: Callable[[], None] | None = None) -> None:
+                 on_drawn_by_changed: Callable[[], None] | None = None, camera_paths_dir: str | Path | None = None) -> None:
         self.server, self.model, self.train_views, self.render_views = server, model, train_views, render_views
         self._on_view_changed, self._on_render_path = on_view_changed, on_render_path
         self._on_drawn_by_changed = on_drawn_by_changed
@@ -63,6 +67,9 @@ class ViewerPage:
         self.splats_text = "the Gaussians are on their way"
         self._build_scene()
         self._build_gui(max_resolution)
+        world_from_capture = model.space.world_from_capture
+        self.keyframes = KeyframePanel(server, train_views.height, train_views.width, self.radius, Path(camera_paths_dir or "."),
+                                       None if world_from_capture is None else world_from_capture.cpu())
 
     # -- building ------------------------------------------------------------------------------------------------
 

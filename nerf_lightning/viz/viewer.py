@@ -60,7 +60,8 @@ class FieldViewer:
             splats drawn by the browser, ``HasGaussians``).
         train_views: the training cameras and images, drawn as frustums; where the view starts.
         render_views: ``(path, frames) -> Views``, the cameras of a render path (a DataModule's ``render_views``).
-        output_dir: the button's GIFs go to ``<output_dir>/<time>_<path>/`` (as nerf-render writes them).
+        output_dir: the button's GIFs go to ``<output_dir>/<time>_<path>/`` (as nerf-render writes them), the camera
+            paths framed in the page to ``<output_dir>/camera_paths/``.
         moving_frame_s, max_resolution, max_frame_s, refresh_s: how frames are sized and refreshed
             (:class:`~nerf_lightning.viz.scheduler.RenderScheduler`).
         max_splats: the most Gaussians sent to the browser (the most opaque).
@@ -75,7 +76,7 @@ class FieldViewer:
         self.scheduler = RenderScheduler(moving_frame_s, max_resolution, max_frame_s, refresh_s)
         self.page = ViewerPage(server, model, train_views, render_views, max_resolution,
                                on_view_changed=self._view_changed, on_render_path=self._request_path,
-                               on_drawn_by_changed=self._drawn_by_changed)
+                               on_drawn_by_changed=self._drawn_by_changed, camera_paths_dir=self.output_dir / "camera_paths")
         self.splats_sent = 0  # how many times the Gaussians were sent to the browsers
         self.splats_shown = 0  # how many Gaussians the browsers were last sent
         # the model's state the splats should show (refresh_splats) and the one they show: sent when they differ

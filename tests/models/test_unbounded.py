@@ -3,6 +3,7 @@ field and grid, cone steps); nerf-eval on a second file of the same capture; exp
 capture's coordinates."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -127,3 +128,51 @@ def test_the_360_preset_trains_on_a_capture_in_its_own_coordinates(capture, tmp_
     assert metrics["train/samples_per_ray"] <= 24  # the field sees the proposal sampler's 24 intervals a ray, no more
     model, _ = load_model(tmp_path / "run" / "checkpoints" / "last.ckpt")
     assert model.field.appearance.rows.shape[0] == 54 and model.renderer.gradient_scaling_distance == 1.0
+
+
+def test_a_camera_path_in_the_captures_coordinates_renders_its_photos_views(trained, capture, tmp_path):
+    """Training frames copied into nerfstudio's camera_path.json render as the trained scene sees those frames; the same
+    path in nerfstudio's normalised world renders the same with its dataparser_transforms.json (through nerf-render),
+    and the transforms.json a render writes renders the same again."""
+    import imageio.v3 as iio
+
+    from nerf_lightning.checkpoints import load_run_data
+    from nerf_lightning.outputs.frames import render_camera_path
+
+    run, _ = trained
+    root, _ = capture
+    ckpt = run / "checkpoints" / "last.ckpt"
+    model, info = load_model(ckpt)
+    meta = json.loads((root / "transforms.json").read_text())
+    frames = [meta["frames"][index] for index in (3, 17)]
+    fov = math.degrees(2.0 * math.atan(0.5 * meta["h"] / meta["fl_y"]))
+    path = {"camera_type": "perspective", "render_height": meta["h"], "render_width": meta["w"], "fps": 10, "seconds": 0.2, "keyframes": [],
+            "camera_path": [{"camera_to_world": sum(frame["transform_matrix"], []), "fov": fov, "aspect": 1.0} for frame in frames]}
+    (tmp_path / "camera_path.json").write_text(json.dumps(path))
+    written = render_camera_path(model, info["config"], tmp_path / "copied", str(tmp_path / "camera_path.json"), scale=0.5)
+    assert (tmp_path / "copied" / "rgb.gif") in written
+    # the scene's own cameras of those frames (the loader's mapping, not the path's) render the same pictures
+    train = load_run_data(info["config"]).scene.train
+    for index, frame in enumerate(frames):
+        view = train.names.index(frame["file_path"].split("/")[-1])
+        expected = model.render_view(train.K[view], train.c2w[view], train.height, train.width)["rgb"]
+        got = torch.from_numpy(iio.imread(tmp_path / "copied" / "frames" / f"rgb_{index:04d}.png")).float() / 255.0
+        assert got.shape == expected.shape and (got - expected.clamp(0, 1)).abs().max() < 2.0 / 255.0
+
+    # nerfstudio's normalised world: turned, moved and scaled by its dataparser
+    transform = torch.tensor([[0.0, 1.0, 0.0, -0.4], [0.0, 0.0, 1.0, 0.2], [1.0, 0.0, 0.0, 1.5]], dtype=torch.float64)
+    scale = 0.1
+    (tmp_path / "dataparser_transforms.json").write_text(json.dumps({"transform": transform.tolist(), "scale": scale}))
+    nerfstudio_from_capture = torch.eye(4, dtype=torch.float64)
+    nerfstudio_from_capture[:3] = scale * transform
+    capture_c2w = torch.tensor([frame["transform_matrix"] for frame in frames], dtype=torch.float64)
+    path["camera_path"] = [dict(camera, camera_to_world=matrix.flatten().tolist())
+                           for camera, matrix in zip(path["camera_path"], apply_similarity(nerfstudio_from_capture, capture_c2w))]
+    (tmp_path / "nerfstudio_path.json").write_text(json.dumps(path))
+    run_cli("render", f"ckpt_path={ckpt}", f"render.path={tmp_path / 'nerfstudio_path.json'}", "render.scale=0.5",
+            f"render.dataparser_transforms={tmp_path / 'dataparser_transforms.json'}", f"output_dir={tmp_path / 'nerfstudio'}", cwd=tmp_path)
+    render_camera_path(model, info["config"], tmp_path / "again", str(tmp_path / "copied" / "transforms.json"))
+    for index in range(2):
+        first = iio.imread(tmp_path / "copied" / "frames" / f"rgb_{index:04d}.png").astype(int)
+        for other in ("nerfstudio", "again"):
+            assert abs(iio.imread(tmp_path / other / "frames" / f"rgb_{index:04d}.png").astype(int) - first).max() <= 1, other

@@ -474,6 +474,59 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
         viewer.server.stop()
 
 
+@needs_browser
+def test_a_path_framed_in_the_browser_is_saved_and_rendered(trained, browser, scene_cache, monkeypatch, tmp_path):
+    """The page's Camera path folder: three views added as keyframes with its button, the second removed, the preview
+    drawn, the path saved as camera_path.json (one second at 3 frames a second); nerf-render renders it: three frames,
+    the first and the last the two keyframes' views, the middle one between them."""
+    from nerf_lightning.checkpoints import load_model, load_run_data
+    from nerf_lightning.viz.viewer import FieldViewer
+    from nerf_lightning.viz.viser_view import start_server
+    from tests.conftest import run_cli
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    port = free_port()
+    server = start_server("127.0.0.1", port)
+    model, info = load_model(trained["ckpt"], "cpu")
+    datamodule = load_run_data(info["config"])
+    viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, tmp_path / "renders", max_resolution=64)
+    train, panel = datamodule.scene.train, viewer.page.keyframes
+    try:
+        page, client_id = open_page(browser, viewer, port)
+        for count, index in enumerate((3, 20, 12), start=1):
+            viewer.page.look_through(viewer.server.get_clients()[client_id], index)
+            wait_for(lambda: np.allclose(viewer.server.get_clients()[client_id].camera.position, train.c2w[index, :3, 3].numpy(), atol=1e-3),
+                     what=f"the view through camera {index}")
+            page.get_by_role("button", name="Add keyframe").click()
+            wait_for(lambda: len(panel.keyframes) == count, what=f"keyframe {count}")
+        assert panel.listing.content.count("\n") == 2  # three lines, one a keyframe
+        panel.remove_index.value = 2
+        page.get_by_role("button", name="Remove keyframe").click()
+        wait_for(lambda: len(panel.keyframes) == 2, what="the second keyframe removed")
+        panel.seconds.value, panel.fps.value = 1.0, 3.0
+        page.get_by_label("Preview path", exact=True).click()
+        wait_for(lambda: panel.preview.value, what="the preview")
+        page.get_by_role("button", name="Save camera_path.json").click()
+        wait_for(lambda: panel.saved is not None and "saved" in panel.status.content, what="camera_path.json")
+    finally:
+        viewer.stop()
+        viewer.server.stop()
+    saved = panel.saved
+    assert saved == tmp_path / "renders" / "camera_paths" / "camera_path.json"
+    meta = json.loads(saved.read_text())
+    assert len(meta["keyframes"]) == 2 and len(meta["camera_path"]) == 3 and meta["fps"] == 3.0
+
+    run_cli("render", f"ckpt_path={trained['ckpt']}", f"render.path={saved}", f"output_dir={tmp_path / 'render'}", "device=cpu", cwd=tmp_path)
+    import imageio.v3 as iio
+
+    frames = [torch.from_numpy(iio.imread(path)).float() / 255.0 for path in sorted((tmp_path / "render" / "frames").glob("rgb_*.png"))]
+    assert len(frames) == 3 and frames[0].shape == (train.height, train.width, 3)
+    ends = [model.render_view(train.K[index], train.c2w[index], train.height, train.width)["rgb"].clamp(0, 1) for index in (3, 12)]
+    assert float(mse_to_psnr(torch.mean((frames[0] - ends[0]) ** 2))) > 35.0
+    assert float(mse_to_psnr(torch.mean((frames[2] - ends[1]) ** 2))) > 35.0
+    assert all(float(mse_to_psnr(torch.mean((frames[1] - end) ** 2))) < 30.0 for end in ends)
+
+
 @pytest.mark.slow  # two trainings side by side (half a minute): out of CI, which the browser test above keeps the viewer in
 @needs_browser
 def test_training_with_a_live_view_reaches_the_same_psnr_and_outlives_the_browser(trained, browser, scene_cache, tmp_path):

@@ -1,0 +1,96 @@
+"""LPIPS with weights the tests write (no network): its code path against torchmetrics' own LPIPS, the properties of a
+distance, blur farther than noise, where the weights come from, and a weights file of the wrong shape."""
+
+import pytest
+import torch
+from torch import nn
+
+from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.outputs.lpips import ALEXNET_FILE, CONVOLUTIONS, LPIPS, load_lpips, shipped_heads
+
+
+def alexnet_features(seed: int = 0) -> nn.Sequential:
+    """torchvision's ``alexnet().features``, layer for layer, with random weights (what torchvision builds)."""
+    torch.manual_seed(seed)
+    layers: list[nn.Module] = []
+    for index, out_channels, in_channels, kernel, stride, padding in CONVOLUTIONS:
+        while len(layers) < index:  # the max-pools between the convolutions
+            layers.append(nn.MaxPool2d(kernel_size=3, stride=2))
+        layers += [nn.Conv2d(in_channels, out_channels, kernel, stride, padding), nn.ReLU(inplace=True)]
+    layers.append(nn.MaxPool2d(kernel_size=3, stride=2))
+    return nn.Sequential(*layers)
+
+
+def written_weights(path, seed: int = 0, heads: bool = True):
+    """A weights file as a user would name it: a random AlexNet (torchvision's keys) and non-negative heads (LPIPS's)."""
+    state = {f"features.{key}": value for key, value in alexnet_features(seed).state_dict().items()}
+    if heads:
+        generator = torch.Generator().manual_seed(seed)
+        for layer, (_, channels, *_) in enumerate(CONVOLUTIONS):
+            state[f"lin{layer}.model.1.weight"] = torch.rand(1, channels, 1, 1, generator=generator) / channels
+    torch.save(state, path)
+    return path
+
+
+@pytest.fixture
+def image(procedural_scene):
+    """(H, W, 3) in [0, 1]: a textured view of the procedural scene, 100x100."""
+    return as_float_rgb(procedural_scene.train.images[0])
+
+
+def test_the_network_is_torchmetrics_lpips_with_the_same_weights(tmp_path, image, monkeypatch):
+    """torchmetrics' LPIPS (the lpips package's code) with the same AlexNet and the heads it ships: the same distances."""
+    reference_module = pytest.importorskip("torchmetrics.functional.image.lpips")
+    features = alexnet_features(seed=3)
+    monkeypatch.setattr(reference_module, "_get_tv_model_features", lambda net, pretrained=False: features)
+    reference = reference_module._LPIPS(net="alex").eval()
+    heads = torch.load(shipped_heads(), map_location="cpu", weights_only=True)
+    ours = LPIPS({**{f"features.{key}": value for key, value in features.state_dict().items()}, **heads})
+    a = image.permute(2, 0, 1)[None]
+    b = torch.roll(a, shifts=3, dims=-1).flip(-2)
+    noisy = (a + 0.05 * torch.randn_like(a)).clamp(0, 1)
+    for other in (b, noisy):
+        expected = reference(a, other, normalize=True).flatten()
+        torch.testing.assert_close(ours(a, other), expected, rtol=1e-4, atol=1e-6)
+
+
+def test_a_distance_zero_for_the_same_image_symmetric_and_larger_for_blur_than_for_slight_noise(tmp_path, image):
+    network, source = load_lpips("auto", written_weights(tmp_path / "weights.pth"))
+    assert network is not None and source == str(tmp_path / "weights.pth")
+    assert float(network(image, image)) == 0.0
+    generator = torch.Generator().manual_seed(0)
+    noisy = (image + 0.02 * torch.randn(image.shape, generator=generator)).clamp(0, 1)
+    kernel = torch.ones(3, 1, 7, 7) / 49.0
+    blurred = nn.functional.conv2d(image.permute(2, 0, 1)[None], kernel, padding=3, groups=3)[0].permute(1, 2, 0)
+    assert float(network(image, noisy)) == pytest.approx(float(network(noisy, image)), rel=1e-6)
+    assert float(network(image, blurred)) == pytest.approx(float(network(blurred, image)), rel=1e-6)
+    assert 0.0 < float(network(image, noisy)) < float(network(image, blurred))
+    batch = torch.stack([image, noisy, blurred]).permute(0, 3, 1, 2)
+    assert network(batch, batch.flip(0)).shape == (3,)
+
+
+def test_the_backbone_from_the_hub_cache_and_the_heads_torchmetrics_ships(tmp_path, monkeypatch, image):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    network, said = load_lpips("auto")
+    assert network is None and said.startswith("LPIPS skipped: no AlexNet weights at") and "eval.lpips_weights" in said
+    assert load_lpips("off") == (None, "LPIPS off (eval.lpips=off)")
+    backbone = tmp_path / "torch" / "hub" / "checkpoints" / ALEXNET_FILE
+    backbone.parent.mkdir(parents=True)
+    written_weights(backbone, heads=False)
+    network, said = load_lpips("auto")
+    assert network is not None and said == f"{backbone} + {shipped_heads()}"
+    assert float(network(image, image.flip(0))) > 0.0
+
+
+def test_a_weights_file_of_the_wrong_shape_is_named(tmp_path):
+    path = written_weights(tmp_path / "weights.pth")
+    state = torch.load(path, weights_only=True)
+    state["lin2.model.1.weight"] = torch.zeros(1, 100, 1, 1)
+    torch.save(state, path)
+    with pytest.raises(ValueError, match=r"weights.pth: 'lin2.model.1.weight' has shape \(1, 100, 1, 1\), expected \(1, 384, 1, 1\)"):
+        load_lpips("auto", path)
+    (tmp_path / "text.pth").write_text("not weights")
+    with pytest.raises(ValueError, match="text.pth: not a weights file"):
+        load_lpips("auto", tmp_path / "text.pth")
+    with pytest.raises(FileNotFoundError, match="eval.lpips_weights: no such file"):
+        load_lpips("auto", tmp_path / "missing.pth")

@@ -23,6 +23,7 @@ import pytest
 import torch
 
 from nerf_lightning.config import compose_config, renamed_key_message
+from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.viz.scheduler import BrowserCamera, RenderScheduler, browser_camera, progressive_heights
@@ -218,6 +219,7 @@ class FakeModel:
     """Renders a grey picture through the contract and nothing else: no sampler, no field, no kind."""
 
     device = torch.device("cpu")
+    space = SceneSpace(2.0, 6.0, (1.0, 1.0, 1.0))  # the contract's: the page writes camera paths through its world_from_capture
 
     def __init__(self):
         self.calls = []

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from nerf_lightning.geometry.space import SceneSpace
 from tests.viz.conftest import free_port, needs_browser, open_page, wait_for
 
 QUICK = ["experiment=splat_procedural", "data.scene.size=32", "model.random_count=3000"]
@@ -36,6 +37,7 @@ class FrameModel:
     """A model that renders a grey picture and has no Gaussians (a NeRF, to the viewer)."""
 
     device = torch.device("cpu")
+    space = SceneSpace(2.0, 6.0, (1.0, 1.0, 1.0))  # the contract's: the page writes camera paths through its world_from_capture
 
     def render_view(self, K, c2w, height, width, abort=None):
         return {"rgb": torch.full((height, width, 3), 0.5), "depth": torch.ones(height, width), "accumulation": torch.ones(height, width)}

@@ -139,3 +139,23 @@ def test_the_keyframe_path_passes_through_its_keyframes_smoothly():
     torch.testing.assert_close(angles, angles.mean().expand(20), atol=1e-4, rtol=0)
     with pytest.raises(ValueError, match="at least two keyframes"):
         keyframe_path(keyframes[:1], fov[:1], 10)
+
+
+def test_the_viewers_keyframes_save_a_path_that_reads_back_and_refuse_fewer_than_two(tmp_path):
+    from nerf_lightning.viz.keyframes import Keyframes
+
+    keyframes = Keyframes(height=60, width=80)
+    keyframes.add(cameras(2)[0], 50.0)
+    with pytest.raises(ValueError, match="at least two keyframes, the path has 1: add another view"):
+        keyframes.camera_path(2.0, 5.0, WORLD_FROM_CAPTURE)
+    keyframes.add(cameras(2)[1], 40.0)
+    meta = keyframes.camera_path(2.0, 5.0, WORLD_FROM_CAPTURE)
+    assert len(meta["camera_path"]) == 10 and len(meta["keyframes"]) == 2 and meta["seconds"] == 2.0
+    views, fps = read_camera_path(write(tmp_path / "camera_path.json", meta), WORLD_FROM_CAPTURE)
+    assert fps == 5.0 and (views.height, views.width) == (60, 80)
+    torch.testing.assert_close(views.c2w[[0, -1]], cameras(2), atol=1e-5, rtol=0)
+    fov = torch.rad2deg(2.0 * torch.atan(0.5 * 60 / views.K[[0, -1], 1, 1]))
+    torch.testing.assert_close(fov, torch.tensor([50.0, 40.0]), atol=1e-3, rtol=0)
+    keyframes.remove(0)
+    with pytest.raises(IndexError, match="there is no keyframe 2: the path has 1"):
+        keyframes.remove(1)

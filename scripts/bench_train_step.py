@@ -71,19 +71,21 @@ def main() -> None:
         timed = json.loads(timings.read_text())
 
     step, loop = summarize(timed["step_s"]), summarize(timed["loop_s"])
-    batch_size = int(cfg.data.batch_size)
+    batch_size = cfg.data.get("batch_size")  # rays a step; a model of Gaussians draws whole views (data=views), which have none
     result = {
         **start_result(timed["device"] or args.device),
         "benchmark": "train_step", "preset": args.preset, "root": None if root is None else str(root), "overrides": args.overrides,
         "device": timed["device"], "precision": str(cfg.trainer.precision), "callbacks": list(cfg.get("callbacks") or {}), "seed": args.seed, "batch_size": batch_size,
         "warmup_steps": args.warmup, "steps": len(timed["step_s"]), "global_step": metrics["step"],
-        "rays_per_second": batch_size / step["median_s"], "rays_per_second_loop": batch_size / loop["median_s"],
+        "rays_per_second": batch_size / step["median_s"] if batch_size else None,
+        "rays_per_second_loop": batch_size / loop["median_s"] if batch_size else None,
         "samples_per_ray": metrics.get("train/samples_per_ray"), "final_train_loss": metrics.get("train/loss"),
         "step": step, "loop": loop,
     }
     finish(result, args.out)
+    rays = f", {result['rays_per_second']:,.0f} rays/s" if batch_size else ""
     print(f"{args.preset}: {1000 * step['median_s']:.1f} ms a step (median; mean {1000 * step['mean_s']:.1f} ms, "
-          f"loop {1000 * loop['median_s']:.1f} ms), {result['rays_per_second']:,.0f} rays/s on {timed['device']}", file=sys.stderr)
+          f"loop {1000 * loop['median_s']:.1f} ms){rays} on {timed['device']}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -149,7 +149,11 @@ def load_lpips(mode: str = "auto", weights: str | Path | None = None) -> tuple[L
         backbone = hub_backbone()
         if not backbone.is_file() and mode == "download":
             log.info("downloading AlexNet's weights for LPIPS into %s", backbone.parent)
-            torch.hub.load_state_dict_from_url(ALEXNET_URL, progress=False, file_name=ALEXNET_FILE)
+            try:
+                torch.hub.load_state_dict_from_url(ALEXNET_URL, progress=False, file_name=ALEXNET_FILE)
+            except Exception as error:  # no internet, a proxy, a partial file: the scores go on without LPIPS
+                return None, (f"LPIPS skipped: downloading {ALEXNET_URL} failed ({type(error).__name__}: {error}); put the "
+                              f"file at {backbone} or name it with eval.lpips_weights=<file>")
         if not backbone.is_file():
             return None, (f"LPIPS skipped: no AlexNet weights at {backbone}; set eval.lpips_weights=<file> or "
                           "eval.lpips=download (fetches them from download.pytorch.org)")

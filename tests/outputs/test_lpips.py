@@ -94,3 +94,34 @@ def test_a_weights_file_of_the_wrong_shape_is_named(tmp_path):
         load_lpips("auto", tmp_path / "text.pth")
     with pytest.raises(FileNotFoundError, match="eval.lpips_weights: no such file"):
         load_lpips("auto", tmp_path / "missing.pth")
+
+
+def test_download_fetches_the_backbone_into_the_hub_cache_and_a_failed_download_is_one_line(tmp_path, monkeypatch, image):
+    """eval.lpips=download: torch.hub's download of AlexNet's file (stood in for here: no network in tests), then the
+    network as from the cache; without the internet, LPIPS is skipped with one line naming the URL."""
+    from nerf_lightning.outputs import lpips as module
+
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    asked = []
+
+    def fake_download(url, progress=True, file_name=None):
+        asked.append((url, file_name))
+        target = module.hub_backbone()
+        target.parent.mkdir(parents=True, exist_ok=True)
+        written_weights(target, heads=False)
+        return torch.load(target, weights_only=True)
+
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", fake_download)
+    network, said = load_lpips("download")
+    assert asked == [(module.ALEXNET_URL, ALEXNET_FILE)] and network is not None and said.startswith(str(module.hub_backbone()))
+    assert float(network(image, image)) == 0.0
+
+    module.hub_backbone().unlink()
+
+    def offline(url, progress=True, file_name=None):
+        raise OSError("Network is unreachable")
+
+    monkeypatch.setattr(torch.hub, "load_state_dict_from_url", offline)
+    network, said = load_lpips("download")
+    assert network is None and said.startswith(f"LPIPS skipped: downloading {module.ALEXNET_URL} failed (OSError: Network is unreachable)")
+    assert "\n" not in said

@@ -53,12 +53,12 @@ def test_without_masks_the_room_keeps_the_photos_from_being_posed_around_the_obj
         assert errors["max_position_error_percent_of_spread"] > 20.0 or errors["max_rotation_error_deg"] > 20.0, errors
 
 
-@pytest.mark.slow  # 600 steps and an evaluation (over a minute): out of CI
+@pytest.mark.slow  # 1500 steps and an evaluation (a minute and a half): out of CI
 def test_a_turntable_capture_trains_on_its_object_alone_and_is_scored_on_both(tmp_path, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     run = tmp_path / "run"
     result = run_cli("train", "experiment=fast", "data=turntable", "data.scene.size=128", "model.field.aabb=[-0.5,-0.5,-0.5,0.5,0.5,0.5]",
-                     "trainer.max_steps=600", "data.val_every=600", "trainer.enable_progress_bar=false", f"paths.output_dir={run}", cwd=tmp_path)
+                     "trainer.max_steps=1500", "data.val_every=1500", "trainer.enable_progress_bar=false", f"paths.output_dir={run}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     result = run_cli("evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", f"output_dir={tmp_path / 'eval'}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -66,5 +66,6 @@ def test_a_turntable_capture_trains_on_its_object_alone_and_is_scored_on_both(tm
     assert scores["masks"]["mode"] == "background" and scores["views"] == 5
     mean = scores["mean"]
     # the training views' mean colour scores 13.5 dB on these views (the object over black), and 13.4 over the masks
-    # alone; 600 steps about 19 and 15 (the object's texture is fine noise, which SIFT needs and a NeRF learns slowly)
-    assert mean["psnr"] > 17.5 and mean["psnr_masked"] > 14.3, mean
+    # alone; 1500 steps reach 22.0 and 17.9 (the object's texture is fine noise, which SIFT needs and a NeRF learns
+    # slowly). The bars sit about 1.5 dB under the run and 3 dB over the mean colour.
+    assert mean["psnr"] > 20.5 and mean["psnr_masked"] > 16.4, mean

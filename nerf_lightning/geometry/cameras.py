@@ -46,6 +46,14 @@ def validate_c2w(c2w: torch.Tensor, source: str, tolerance: float = 1e-3) -> tor
     return c2w.to(torch.float32)
 
 
+def centred_intrinsics(focal: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(N,) focal lengths in pixels -> (N, 3, 3) intrinsics with the principal point at the image's centre (a camera
+    path's frames: nerfstudio's, and the viewer's keyframes)."""
+    K = torch.zeros(len(focal), 3, 3, dtype=focal.dtype)
+    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = focal, focal, 0.5 * width, 0.5 * height, 1.0
+    return K
+
+
 def pinhole_camera(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int) -> PinholeCamera:
     """kornia cameras from (B, 3, 3) intrinsics and (B, 4, 4) OpenCV camera-to-world matrices."""
     batch = K.shape[0]

@@ -17,6 +17,7 @@ import torch
 
 from nerf_lightning.data.formats.camera_path import camera_path_meta
 from nerf_lightning.data.scene import Views
+from nerf_lightning.geometry.cameras import centred_intrinsics
 from nerf_lightning.geometry.paths import keyframe_path
 from nerf_lightning.io import write_json
 from nerf_lightning.viz.scheduler import browser_camera
@@ -52,9 +53,7 @@ class Keyframes:
         if len(self) < 2:
             raise ValueError(f"a camera path needs at least two keyframes, the path has {len(self)}: add another view")
         c2w, fov = keyframe_path(torch.stack(self.c2w), torch.tensor(self.fov_degrees), n_frames)
-        focal = 0.5 * self.height / torch.tan(0.5 * torch.deg2rad(fov))
-        K = torch.zeros(n_frames, 3, 3)
-        K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = focal, focal, 0.5 * self.width, 0.5 * self.height, 1.0
+        K = centred_intrinsics(0.5 * self.height / torch.tan(0.5 * torch.deg2rad(fov)), self.height, self.width)
         return Views(K=K, c2w=c2w, height=self.height, width=self.width)
 
     def camera_path(self, seconds: float, fps: float, world_from_capture: torch.Tensor | None) -> dict:

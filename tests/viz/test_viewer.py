@@ -402,23 +402,28 @@ def _choose(page, label: str, option: str) -> None:
     page.get_by_role("option", name=option, exact=True).click()
 
 
+def viewer_as_nerf_view_builds_it(trained, tmp_path, max_resolution: int):
+    """The viewer nerf-view starts for the ``trained`` checkpoint, built as it builds it, to look inside
+    (test_nerf_view_serves_its_page_until_ctrl_c runs the command itself): -> (viewer, port, model, datamodule)."""
+    from nerf_lightning.checkpoints import load_model, load_run_data
+    from nerf_lightning.viz.viewer import FieldViewer
+    from nerf_lightning.viz.viser_view import start_server
+
+    port = free_port()
+    server = start_server("127.0.0.1", port)
+    model, info = load_model(trained["ckpt"], "cpu")
+    datamodule = load_run_data(info["config"])
+    viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, tmp_path / "renders", max_resolution=max_resolution)
+    return viewer, port, model, datamodule
+
+
 @needs_browser
 def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tmp_path):
     """The page connects; it shows the rendered field (its colours, not a blank canvas); a drag in the page moves the
     camera and changes the picture; the depth view differs from the rgb one; a training camera looked through shows its
     image; the Render button writes the path's GIF."""
-    from nerf_lightning.checkpoints import load_model, load_run_data
-    from nerf_lightning.viz.viewer import FieldViewer
-    from nerf_lightning.viz.viser_view import start_server
-
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    port = free_port()
-    # the viewer nerf-view starts, built as it builds it, to look inside (test_nerf_view_serves_its_page_until_ctrl_c
-    # runs the command itself)
-    server = start_server("127.0.0.1", port)
-    model, info = load_model(trained["ckpt"], "cpu")
-    datamodule = load_run_data(info["config"])
-    viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, tmp_path / "renders", max_resolution=256)
+    viewer, port, _, _ = viewer_as_nerf_view_builds_it(trained, tmp_path, max_resolution=256)
     try:
         page, client_id = open_page(browser, viewer, port)
         viewer.page.show_cameras.value = False  # the frustums show the training images: keep them out of the picture
@@ -481,17 +486,10 @@ def test_a_path_framed_in_the_browser_is_saved_and_rendered(trained, browser, sc
     """The page's Camera path folder: three views added as keyframes with its button, the second removed, the preview
     drawn, the path saved as camera_path.json (one second at 3 frames a second); nerf-render renders it: three frames,
     the first and the last the two keyframes' views, the middle one between them."""
-    from nerf_lightning.checkpoints import load_model, load_run_data
-    from nerf_lightning.viz.viewer import FieldViewer
-    from nerf_lightning.viz.viser_view import start_server
     from tests.conftest import run_cli
 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    port = free_port()
-    server = start_server("127.0.0.1", port)
-    model, info = load_model(trained["ckpt"], "cpu")
-    datamodule = load_run_data(info["config"])
-    viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, tmp_path / "renders", max_resolution=64)
+    viewer, port, model, datamodule = viewer_as_nerf_view_builds_it(trained, tmp_path, max_resolution=64)
     train, panel = datamodule.scene.train, viewer.page.keyframes
     try:
         page, client_id = open_page(browser, viewer, port)

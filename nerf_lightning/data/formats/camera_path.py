@@ -27,7 +27,7 @@ import torch
 from nerf_lightning.data.formats.shared import apply_similarity
 from nerf_lightning.data.formats.transforms import frame_intrinsics
 from nerf_lightning.data.scene import Views
-from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
+from nerf_lightning.geometry.cameras import centred_intrinsics, opengl_to_opencv, validate_c2w
 
 NOT_A_PATH = ("expected nerfstudio's camera_path.json (render_height, render_width and a camera_path list) or the "
               "transforms.json of a rendered path (w, h and a frames list)")
@@ -116,9 +116,7 @@ def _nerfstudio_path(meta: dict, path: Path) -> tuple[torch.Tensor, torch.Tensor
     c2w = _matrices([camera["camera_to_world"] for camera in cameras], path, "camera_path[].camera_to_world")
     fov = torch.tensor([_number(camera, "fov", path, high=180.0) for camera in cameras], dtype=torch.float64)
     focal = 0.5 * height / torch.tan(0.5 * torch.deg2rad(fov))
-    K = torch.zeros(len(cameras), 3, 3, dtype=torch.float64)
-    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = focal, focal, 0.5 * width, 0.5 * height, 1.0
-    return c2w, K, height, width
+    return c2w, centred_intrinsics(focal, height, width), height, width
 
 
 def _rendered_path(meta: dict, path: Path) -> tuple[torch.Tensor, torch.Tensor, int, int]:

@@ -1,4 +1,5 @@
-"""Quality metrics: of images (PSNR and SSIM from kornia, depth error) and of meshes (Chamfer distance)."""
+"""Quality metrics: of images (PSNR and SSIM from kornia, depth error; an SSIM map for losses, equal to kornia's) and
+of meshes (Chamfer distance)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,31 @@ import torch
 def mse_to_psnr(mse: torch.Tensor) -> torch.Tensor:
     """PSNR in dB of colours in [0, 1] from their mean squared error: -10 log10(mse)."""
     return -10.0 * torch.log10(mse)
+
+
+def ssim_map(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11) -> torch.Tensor:
+    """(B, C, H, W) images and targets in [0, 1] -> (B, C, H, W) the SSIM map of ``kornia.metrics.ssim`` (Gaussian
+    window of sigma 1.5, reflect padding, the same constants), for a loss that is differentiated every step.
+
+    kornia blurs the five moments (x, y, x^2, y^2, xy) one after another; here they are stacked and blurred by one
+    padding and one pair of grouped 1D convolutions, so that the forward and backward passes each run a few large
+    convolutions instead of many small ones. The tests hold it equal to kornia's in values and gradients."""
+    if images.shape != targets.shape or images.ndim != 4:
+        raise ValueError(f"ssim_map expects (B, C, H, W) images and targets of one shape, got {tuple(images.shape)} "
+                         f"and {tuple(targets.shape)}")
+    channels, radius = images.shape[1], window_size // 2
+    kernel = kornia.filters.get_gaussian_kernel1d(window_size, 1.5, device=images.device, dtype=images.dtype)
+    moments = torch.cat([images, targets, images * images, targets * targets, images * targets], dim=1)
+    groups = moments.shape[1]
+    blurred = torch.nn.functional.pad(moments, [radius] * 4, mode="reflect")
+    blurred = torch.nn.functional.conv2d(blurred, kernel.reshape(1, 1, 1, -1).expand(groups, 1, 1, -1), groups=groups)
+    blurred = torch.nn.functional.conv2d(blurred, kernel.reshape(1, 1, -1, 1).expand(groups, 1, -1, 1), groups=groups)
+    mu1, mu2, mu1_sq_blur, mu2_sq_blur, mu12_blur = blurred.split(channels, dim=1)
+    c1, c2 = 0.01**2, 0.03**2
+    mu1_mu2, mu1_sq, mu2_sq = mu1 * mu2, mu1 * mu1, mu2 * mu2
+    numerator = (2.0 * mu1_mu2 + c1) * (2.0 * (mu12_blur - mu1_mu2) + c2)
+    denominator = (mu1_sq + mu2_sq + c1) * ((mu1_sq_blur - mu1_sq) + (mu2_sq_blur - mu2_sq) + c2)
+    return numerator / (denominator + 1e-12)
 
 
 def image_metrics(

@@ -7,7 +7,7 @@ the strategy, for each rasteriser on the same Gaussians.
 Trains ``experiment=<--preset>`` through :func:`nerf_lightning.training.train` (validation, checkpoints, logger off)
 for ``--grow-steps`` steps with the fast rasteriser, so that the strategy has grown the Gaussians as a run does, then
 times ``--steps`` steps with each of ``--rasterizers`` in turn under ``torch.profiler``. The forward
-stages are the CPU time of their labels (``splats.project``, ``splats.sh``, ``splats.rasterize``, ``splats.loss``; the
+stages are the CPU time of their labels (``splats.project_and_shade`` where numba draws, else ``splats.project`` and ``splats.sh``, ``splats.rasterize``, ``splats.loss``; the
 strategy's ``splats.strategy``); ``backward`` (the whole backward pass, the rasteriser's included) and ``adam`` (the
 optimiser's update) are wall times between Lightning's hooks; ``step_s`` from the batch's start to its end.
 """
@@ -32,7 +32,7 @@ from nerf_lightning.splats.sh import spherical_harmonics
 from nerf_lightning.training import train
 
 INSTANCES: list[StageProfiler] = []
-STAGES = ("splats.project", "splats.sh", "splats.rasterize", "splats.loss", "splats.strategy")
+STAGES = ("splats.project_and_shade", "splats.project", "splats.sh", "splats.rasterize", "splats.loss", "splats.strategy")
 
 
 class StageProfiler(L.Callback):
@@ -97,7 +97,7 @@ class StageProfiler(L.Callback):
 
             stages = {name.split(".")[1]: labels.get(name, 0.0) for name in STAGES}
             forward = mean("start", "forward")
-            stages["forward_rest"] = forward - sum(stages[key] for key in ("project", "sh", "rasterize", "loss"))
+            stages["forward_rest"] = forward - sum(stages[key] for key in ("project_and_shade", "project", "sh", "rasterize", "loss"))
             stages["backward"] = mean("forward", "backward")
             stages["adam"] = mean("optimizer", "end")
             ops = sorted(self._profile.key_averages(), key=lambda event: -event.self_cpu_time_total)[:15]

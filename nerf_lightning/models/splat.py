@@ -12,7 +12,6 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-import kornia
 import torch
 from torch.profiler import record_function
 
@@ -21,7 +20,7 @@ from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.metrics import mse_to_psnr, ssim_map
 from nerf_lightning.models.base import SceneModule
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
@@ -210,9 +209,10 @@ class SplatModule(SceneModule):
         g = self.gaussians
         K, c2w = K.to(self.device, torch.float32), c2w.to(self.device, torch.float32)
         degree = self.sh_degree()
-        if not torch.is_grad_enabled() and choose_rasterizer(self.device.type, self.rasterizer) == TILES:
-            # a view to look at (nerf-render, nerf-eval, the viewer, validation): projection and colour in one
-            # numba loop, held equal to the two PyTorch steps below; where tiles draw, numba is there
+        learned_camera = torch.is_grad_enabled() and c2w.requires_grad  # camera refinement: the reference's autograd
+        if not learned_camera and choose_rasterizer(self.device.type, self.rasterizer) == TILES:
+            # projection and colour in one numba loop, forward and backward, held equal to the two PyTorch steps
+            # below; where tiles draw, numba is there
             from nerf_lightning.splats.projection_fast import project_and_shade
 
             with record_function("splats.project_and_shade"):
@@ -285,13 +285,13 @@ class SplatModule(SceneModule):
 
     def photometric_loss(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given."""
-        ssim_map = kornia.metrics.ssim(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None], window_size=11)
+        similarity = ssim_map(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None])  # kornia's, in less time
         if mask is None:
-            l1, ssim = (rgb - image).abs().mean(), ssim_map.mean()
+            l1, ssim = (rgb - image).abs().mean(), similarity.mean()
         else:
             count = mask.sum().clamp(min=1)
             l1 = ((rgb - image).abs().mean(dim=-1) * mask).sum() / count
-            ssim = (ssim_map[0].mean(dim=0) * mask).sum() / count
+            ssim = (similarity[0].mean(dim=0) * mask).sum() / count
         return (1.0 - self.ssim_weight) * l1 + self.ssim_weight * (1.0 - ssim)
 
     def on_after_backward(self) -> None:

@@ -1,14 +1,20 @@
-"""Projection and view-dependent colour in one numba loop: the CPU fast path for drawing a view without gradients
-(``nerf-render``, ``nerf-eval``, the viewer, validation), beside the readable reference it is held equal to,
-:func:`~nerf_lightning.splats.projection.project` then :func:`~nerf_lightning.splats.sh.spherical_harmonics`.
+"""Projection and view-dependent colour in one numba loop, forward and backward: the CPU fast path beside the
+readable reference it is held equal to, :func:`~nerf_lightning.splats.projection.project` then
+:func:`~nerf_lightning.splats.sh.spherical_harmonics`.
 
-Why: once the tile rasteriser composites a small view in a few milliseconds, a frame's time goes into the
-per-Gaussian tensor operations before it: a dozen (N, 3, 3) products, gathers and stacks, each a pass over memory
-for every Gaussian. Here each Gaussian is taken once, its footprint and colour computed in registers, Gaussians in
-parallel; the survivors are then gathered in index order, as the reference's ``nonzero`` keeps them, so that the
-rasteriser sees the same footprints in the same order and draws the same image.
+Why: once the tile rasteriser composites a view in a few milliseconds, a step's time goes into the per-Gaussian
+tensor operations around it: a dozen (N, 3, 3) products, gathers and stacks, and autograd's as many again backward,
+each a pass over memory for every Gaussian. Here each Gaussian is taken once, its footprint and colour computed in
+registers, Gaussians in parallel; the survivors are then gathered in index order, as the reference's ``nonzero``
+keeps them, so that the rasteriser sees the same footprints in the same order and draws the same image.
 
-Training keeps the PyTorch reference: its autograd carries the gradients to every Gaussian parameter.
+The backward pass (:func:`project_and_shade_backward_loop`) recomputes each drawn Gaussian's footprint and takes
+the chain rule back through the conic, the EWA Jacobian, the rotation and scales, the normalised quaternion, the
+mean and the SH colour's direction, as autograd does through the reference (the tests hold the gradients equal).
+Each Gaussian's gradient is written to its own row by one thread: no sums race, so the same input gives the same
+gradients bit for bit.
+
+Where the camera itself is learned (camera refinement), the reference draws: this path takes no camera gradient.
 """
 
 from __future__ import annotations
@@ -114,30 +120,284 @@ def project_and_shade_loop(means, quats, log_scales, opacities, sh0, shN, degree
             colours[g, channel] = _sh_colour(degree, sh0, shN, g, dx, dy, dz, channel)
 
 
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def project_and_shade_backward_loop(means, quats, log_scales, opacities, sh0, shN, degree, camera, height, width,
+                                    antialiased, ids, grad_footprints, grad_colours, grad_means, grad_quats,
+                                    grad_log_scales, grad_opacities, grad_sh0, grad_shN):
+    """The gradients of :func:`project_and_shade_loop` for the drawn Gaussians ``ids`` (M,): ``grad_footprints``
+    (M, 7) the loss's gradients of means2d (2), conic (3), opacity and depth, ``grad_colours`` (M, 3). Written, for
+    Gaussian ``ids[m]``, its rows of ``grad_means`` (N, 3), ``grad_quats`` (N, 4), ``grad_log_scales`` (N, 3),
+    ``grad_opacities`` (N,), ``grad_sh0`` (N, 1, 3) and ``grad_shN`` (N, K - 1, 3) (the other rows are left as
+    they are)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (camera[0], camera[1], camera[2], camera[3], camera[4], camera[5],
+                                                   camera[6], camera[7], camera[8])
+    t0, t1, t2 = camera[9], camera[10], camera[11]
+    fx, fy, cx, cy = camera[12], camera[13], camera[14], camera[15]
+    ox, oy, oz = camera[16], camera[17], camera[18]
+    limit_x0, limit_x1 = -(cx / fx + 0.3 * 0.5 * width / fx), (width - cx) / fx + 0.3 * 0.5 * width / fx
+    limit_y0, limit_y1 = -(cy / fy + 0.3 * 0.5 * height / fy), (height - cy) / fy + 0.3 * 0.5 * height / fy
+    for m in numba.prange(ids.shape[0]):
+        g = ids[m]
+        # -- the forward pass again, as project_and_shade_loop takes it
+        mx, my, mz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
+        x = r00 * mx + r01 * my + r02 * mz + t0
+        y = r10 * mx + r11 * my + r12 * mz + t1
+        z = r20 * mx + r21 * my + r22 * mz + t2
+        pw, px, py, pz = np.float64(quats[g, 0]), np.float64(quats[g, 1]), np.float64(quats[g, 2]), np.float64(quats[g, 3])
+        norm = max(math.sqrt(pw * pw + px * px + py * py + pz * pz), 1e-12)
+        qw, qx, qy, qz = pw / norm, px / norm, py / norm, pz / norm
+        s0, s1, s2 = math.exp(log_scales[g, 0]), math.exp(log_scales[g, 1]), math.exp(log_scales[g, 2])
+        q00, q01, q02 = 1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy)
+        q10, q11, q12 = 2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx)
+        q20, q21, q22 = 2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy)
+        m00, m01, m02 = q00 * s0, q01 * s1, q02 * s2
+        m10, m11, m12 = q10 * s0, q11 * s1, q12 * s2
+        m20, m21, m22 = q20 * s0, q21 * s1, q22 * s2
+        a00 = r00 * m00 + r01 * m10 + r02 * m20
+        a01 = r00 * m01 + r01 * m11 + r02 * m21
+        a02 = r00 * m02 + r01 * m12 + r02 * m22
+        a10 = r10 * m00 + r11 * m10 + r12 * m20
+        a11 = r10 * m01 + r11 * m11 + r12 * m21
+        a12 = r10 * m02 + r11 * m12 + r12 * m22
+        a20 = r20 * m00 + r21 * m10 + r22 * m20
+        a21 = r20 * m01 + r21 * m11 + r22 * m21
+        a22 = r20 * m02 + r21 * m12 + r22 * m22
+        ratio_x, ratio_y = x / z, y / z
+        clamped_x, clamped_y = min(max(ratio_x, limit_x0), limit_x1), min(max(ratio_y, limit_y0), limit_y1)
+        tx, ty = z * clamped_x, z * clamped_y
+        j00, j02, j11, j12 = fx / z, -fx * tx / (z * z), fy / z, -fy * ty / (z * z)
+        u0, u1, u2 = j00 * a00 + j02 * a20, j00 * a01 + j02 * a21, j00 * a02 + j02 * a22
+        v0, v1, v2 = j11 * a10 + j12 * a20, j11 * a11 + j12 * a21, j11 * a12 + j12 * a22
+        f00, f01, f11 = u0 * u0 + u1 * u1 + u2 * u2, u0 * v0 + u1 * v1 + u2 * v2, v0 * v0 + v1 * v1 + v2 * v2
+        a, b, c = f00 + LOW_PASS, f01, f11 + LOW_PASS
+        determinant = a * c - b * b
+        # -- the conic (c, -b, a) / det and the opacity, back to the footprint's covariance
+        grad_u, grad_v = np.float64(grad_footprints[m, 0]), np.float64(grad_footprints[m, 1])
+        inverse = 1.0 / determinant
+        grad_det = -inverse * inverse * (grad_footprints[m, 2] * c - grad_footprints[m, 3] * b + grad_footprints[m, 4] * a)
+        grad_a, grad_b, grad_c = grad_footprints[m, 4] * inverse, -grad_footprints[m, 3] * inverse, grad_footprints[m, 2] * inverse
+        grad_f00, grad_f11 = 0.0, 0.0
+        grad_alpha = np.float64(grad_footprints[m, 5])
+        if antialiased:  # alpha = o sqrt(max(det(F) / det(F + 0.3 I), 1e-10))
+            unfiltered = f00 * f11 - b * b
+            ratio = unfiltered / determinant
+            if ratio >= 1e-10:
+                compensation = math.sqrt(ratio)
+                grad_ratio = grad_alpha * opacities[g] * 0.5 / compensation
+                grad_unfiltered = grad_ratio / determinant
+                grad_det -= grad_ratio * ratio / determinant
+                grad_f00 += grad_unfiltered * f11
+                grad_f11 += grad_unfiltered * f00
+                grad_b -= 2.0 * b * grad_unfiltered
+            else:
+                compensation = math.sqrt(1e-10)
+            grad_opacities[g] = grad_alpha * compensation
+        else:
+            grad_opacities[g] = grad_alpha
+        grad_a += grad_det * c
+        grad_c += grad_det * a
+        grad_b -= 2.0 * b * grad_det
+        grad_f00 += grad_a
+        grad_f11 += grad_c
+        # -- F = U U^T with U = J A (rows u, v), A = W R S
+        gu0, gu1, gu2 = 2.0 * grad_f00 * u0 + grad_b * v0, 2.0 * grad_f00 * u1 + grad_b * v1, 2.0 * grad_f00 * u2 + grad_b * v2
+        gv0, gv1, gv2 = 2.0 * grad_f11 * v0 + grad_b * u0, 2.0 * grad_f11 * v1 + grad_b * u1, 2.0 * grad_f11 * v2 + grad_b * u2
+        grad_j00 = gu0 * a00 + gu1 * a01 + gu2 * a02
+        grad_j02 = gu0 * a20 + gu1 * a21 + gu2 * a22
+        grad_j11 = gv0 * a10 + gv1 * a11 + gv2 * a12
+        grad_j12 = gv0 * a20 + gv1 * a21 + gv2 * a22
+        ga00, ga01, ga02 = j00 * gu0, j00 * gu1, j00 * gu2
+        ga10, ga11, ga12 = j11 * gv0, j11 * gv1, j11 * gv2
+        ga20, ga21, ga22 = j02 * gu0 + j12 * gv0, j02 * gu1 + j12 * gv1, j02 * gu2 + j12 * gv2
+        # A = W M: d M = W^T d A
+        gm00 = r00 * ga00 + r10 * ga10 + r20 * ga20
+        gm01 = r00 * ga01 + r10 * ga11 + r20 * ga21
+        gm02 = r00 * ga02 + r10 * ga12 + r20 * ga22
+        gm10 = r01 * ga00 + r11 * ga10 + r21 * ga20
+        gm11 = r01 * ga01 + r11 * ga11 + r21 * ga21
+        gm12 = r01 * ga02 + r11 * ga12 + r21 * ga22
+        gm20 = r02 * ga00 + r12 * ga10 + r22 * ga20
+        gm21 = r02 * ga01 + r12 * ga11 + r22 * ga21
+        gm22 = r02 * ga02 + r12 * ga12 + r22 * ga22
+        # M = R(q) diag(s): the log scales and the rotation
+        grad_log_scales[g, 0] = (gm00 * q00 + gm10 * q10 + gm20 * q20) * s0
+        grad_log_scales[g, 1] = (gm01 * q01 + gm11 * q11 + gm21 * q21) * s1
+        grad_log_scales[g, 2] = (gm02 * q02 + gm12 * q12 + gm22 * q22) * s2
+        g00, g01, g02 = gm00 * s0, gm01 * s1, gm02 * s2
+        g10, g11, g12 = gm10 * s0, gm11 * s1, gm12 * s2
+        g20, g21, g22 = gm20 * s0, gm21 * s1, gm22 * s2
+        gw = 2.0 * (-qz * g01 + qy * g02 + qz * g10 - qx * g12 - qy * g20 + qx * g21)
+        gx = 2.0 * (qy * g01 + qz * g02 + qy * g10 - 2.0 * qx * g11 - qw * g12 + qz * g20 + qw * g21 - 2.0 * qx * g22)
+        gy = 2.0 * (-2.0 * qy * g00 + qx * g01 + qw * g02 + qx * g10 + qz * g12 - qw * g20 + qz * g21 - 2.0 * qy * g22)
+        gz = 2.0 * (-2.0 * qz * g00 - qw * g01 + qx * g02 + qw * g10 - 2.0 * qz * g11 + qy * g12 + qx * g20 + qy * g21)
+        # the quaternion's normalisation q / |q|
+        along = qw * gw + qx * gx + qy * gy + qz * gz
+        grad_quats[g, 0] = (gw - qw * along) / norm
+        grad_quats[g, 1] = (gx - qx * along) / norm
+        grad_quats[g, 2] = (gy - qy * along) / norm
+        grad_quats[g, 3] = (gz - qz * along) / norm
+        # -- the mean in the camera: means2d, depth and J (at x / z and y / z clamped)
+        z2 = z * z
+        grad_x, grad_y = grad_u * fx / z, grad_v * fy / z
+        grad_z = -grad_u * fx * x / z2 - grad_v * fy * y / z2 + grad_footprints[m, 6]
+        grad_z -= fx / z2 * grad_j00 + fy / z2 * grad_j11
+        grad_z += 2.0 * (fx * tx * grad_j02 + fy * ty * grad_j12) / (z2 * z)
+        grad_tx, grad_ty = -fx / z2 * grad_j02, -fy / z2 * grad_j12
+        if limit_x0 <= ratio_x <= limit_x1:  # t = z (x / z): d t / dx = 1, d t / dz = 0
+            grad_x += grad_tx
+        else:  # t = z limit
+            grad_z += grad_tx * clamped_x
+        if limit_y0 <= ratio_y <= limit_y1:
+            grad_y += grad_ty
+        else:
+            grad_z += grad_ty * clamped_y
+        gmx = r00 * grad_x + r10 * grad_y + r20 * grad_z
+        gmy = r01 * grad_x + r11 * grad_y + r21 * grad_z
+        gmz = r02 * grad_x + r12 * grad_y + r22 * grad_z
+        # -- the colour: the coefficients, and the direction from the camera's centre (which moves with the mean)
+        dx, dy, dz = mx - ox, my - oy, mz - oz
+        length = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+        dx, dy, dz = dx / length, dy / length, dz / length
+        xx, yy, zz, xy, yz, xz = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
+        gdx, gdy, gdz = 0.0, 0.0, 0.0
+        for channel in range(3):
+            grad = np.float64(grad_colours[m, channel])
+            if _sh_colour(degree, sh0, shN, g, dx, dy, dz, channel) <= 0.0:  # clamped at 0: no gradient
+                grad = 0.0
+            grad_sh0[g, 0, channel] = SH_C0 * grad
+            if degree > 0:
+                grad_shN[g, 0, channel] = -SH_C1 * dy * grad
+                grad_shN[g, 1, channel] = SH_C1 * dz * grad
+                grad_shN[g, 2, channel] = -SH_C1 * dx * grad
+                gdy -= SH_C1 * grad * shN[g, 0, channel]
+                gdz += SH_C1 * grad * shN[g, 1, channel]
+                gdx -= SH_C1 * grad * shN[g, 2, channel]
+            if degree > 1:
+                grad_shN[g, 3, channel] = SH_C2[0] * xy * grad
+                grad_shN[g, 4, channel] = SH_C2[1] * yz * grad
+                grad_shN[g, 5, channel] = SH_C2[2] * (2.0 * zz - xx - yy) * grad
+                grad_shN[g, 6, channel] = SH_C2[3] * xz * grad
+                grad_shN[g, 7, channel] = SH_C2[4] * (xx - yy) * grad
+                k = SH_C2[0] * grad * shN[g, 3, channel]
+                gdx += k * dy
+                gdy += k * dx
+                k = SH_C2[1] * grad * shN[g, 4, channel]
+                gdy += k * dz
+                gdz += k * dy
+                k = SH_C2[2] * grad * shN[g, 5, channel]
+                gdx -= 2.0 * dx * k
+                gdy -= 2.0 * dy * k
+                gdz += 4.0 * dz * k
+                k = SH_C2[3] * grad * shN[g, 6, channel]
+                gdx += k * dz
+                gdz += k * dx
+                k = SH_C2[4] * grad * shN[g, 7, channel]
+                gdx += 2.0 * dx * k
+                gdy -= 2.0 * dy * k
+            if degree > 2:
+                grad_shN[g, 8, channel] = SH_C3[0] * dy * (3.0 * xx - yy) * grad
+                grad_shN[g, 9, channel] = SH_C3[1] * xy * dz * grad
+                grad_shN[g, 10, channel] = SH_C3[2] * dy * (4.0 * zz - xx - yy) * grad
+                grad_shN[g, 11, channel] = SH_C3[3] * dz * (2.0 * zz - 3.0 * xx - 3.0 * yy) * grad
+                grad_shN[g, 12, channel] = SH_C3[4] * dx * (4.0 * zz - xx - yy) * grad
+                grad_shN[g, 13, channel] = SH_C3[5] * dz * (xx - yy) * grad
+                grad_shN[g, 14, channel] = SH_C3[6] * dx * (xx - 3.0 * yy) * grad
+                k = SH_C3[0] * grad * shN[g, 8, channel]
+                gdx += 6.0 * xy * k
+                gdy += 3.0 * (xx - yy) * k
+                k = SH_C3[1] * grad * shN[g, 9, channel]
+                gdx += yz * k
+                gdy += xz * k
+                gdz += xy * k
+                k = SH_C3[2] * grad * shN[g, 10, channel]
+                gdx -= 2.0 * xy * k
+                gdy += (4.0 * zz - xx - 3.0 * yy) * k
+                gdz += 8.0 * yz * k
+                k = SH_C3[3] * grad * shN[g, 11, channel]
+                gdx -= 6.0 * xz * k
+                gdy -= 6.0 * yz * k
+                gdz += (6.0 * zz - 3.0 * xx - 3.0 * yy) * k
+                k = SH_C3[4] * grad * shN[g, 12, channel]
+                gdx += (4.0 * zz - 3.0 * xx - yy) * k
+                gdy -= 2.0 * xy * k
+                gdz += 8.0 * xz * k
+                k = SH_C3[5] * grad * shN[g, 13, channel]
+                gdx += 2.0 * xz * k
+                gdy -= 2.0 * yz * k
+                gdz += (xx - yy) * k
+                k = SH_C3[6] * grad * shN[g, 14, channel]
+                gdx += 3.0 * (xx - yy) * k
+                gdy -= 6.0 * xy * k
+        if degree > 0:  # the direction's normalisation d / |d|
+            along = dx * gdx + dy * gdy + dz * gdz
+            gmx += (gdx - dx * along) / length
+            gmy += (gdy - dy * along) / length
+            gmz += (gdz - dz * along) / length
+        grad_means[g, 0], grad_means[g, 1], grad_means[g, 2] = gmx, gmy, gmz
+
+
+
+class ProjectAndShade(torch.autograd.Function):
+    """:func:`project_and_shade_loop` and its gradients as one autograd step: N Gaussians' means (N, 3), quats (N, 4),
+    log_scales (N, 3), opacities (N,), sh0 (N, 1, 3), shN (N, K - 1, 3) -> for the M drawn, means2d (M, 2), conics
+    (M, 3), opacities (M,), depths (M,), colours (M, 3), and without gradients extents (M, 2) and ids (M,) long."""
+
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, opacities, sh0, shN, degree: int, camera: np.ndarray, height: int,
+                width: int, antialiased: bool):
+        arrays = [x.detach().contiguous().numpy() for x in (means, quats, log_scales, opacities, sh0, shN)]
+        if arrays[5].shape[1] == 0:  # numba needs an array it may index (never read at degree 0)
+            arrays[5] = np.zeros((len(arrays[0]), 1, 3), arrays[0].dtype)
+        n = len(arrays[0])
+        footprints = np.empty((n, 9), arrays[0].dtype)
+        colours = np.empty((n, 3), arrays[0].dtype)
+        seen = np.empty(n, np.bool_)
+        project_and_shade_loop(*arrays, degree, camera, height, width, antialiased, footprints, colours, seen)
+        ids = np.flatnonzero(seen)
+        kept = footprints[ids]
+        ctx.saved = (arrays, degree, camera, height, width, antialiased, ids, shN.shape)
+        outputs = (kept[:, 0:2], kept[:, 2:5], kept[:, 5], kept[:, 6], colours[ids], kept[:, 7:9])
+        outputs = tuple(torch.from_numpy(np.ascontiguousarray(value)) for value in outputs) + (torch.from_numpy(ids),)
+        ctx.mark_non_differentiable(outputs[5], outputs[6])
+        return outputs
+
+    @staticmethod
+    def backward(ctx, grad_means2d, grad_conics, grad_opacities, grad_depths, grad_colours, _extents, _ids):
+        arrays, degree, camera, height, width, antialiased, ids, shN_shape = ctx.saved
+        m, dtype = len(ids), arrays[0].dtype
+        parts = [(grad_means2d, 2), (grad_conics, 3), (grad_opacities, 0), (grad_depths, 0)]
+        grad_footprints = np.concatenate([np.zeros((m, max(size, 1)), dtype) if grad is None else
+                                          grad.detach().reshape(m, max(size, 1)).numpy().astype(dtype, copy=False)
+                                          for grad, size in parts], axis=1)
+        grad_colours = np.zeros((m, 3), dtype) if grad_colours is None else \
+            grad_colours.detach().contiguous().numpy().astype(dtype, copy=False)
+        grads = [np.zeros(array.shape, dtype) for array in arrays]  # computed in float64, rounded once as written
+        project_and_shade_backward_loop(*arrays, degree, camera, height, width, antialiased, ids, grad_footprints,
+                                        grad_colours, *grads)
+        grads[5] = grads[5][:, : shN_shape[1]]  # shN without higher bands: its own empty shape back
+        return (*(torch.from_numpy(grad) for grad in grads), None, None, None, None, None)
+
+
+def camera_array(K: torch.Tensor, c2w: torch.Tensor, dtype: torch.dtype) -> np.ndarray:
+    """(19,) the loops' camera: world-to-camera rotation (row-major) and translation, fx, fy, cx, cy, the centre."""
+    c2w = c2w.detach().to(torch.float64)
+    w2c = torch.linalg.inv(c2w)
+    K = K.detach().to(torch.float64)
+    camera = torch.cat([w2c[:3, :3].reshape(-1), w2c[:3, 3], K[0, 0:1], K[1, 1:2], K[0, 2:3], K[1, 2:3], c2w[:3, 3]])
+    return camera.to(dtype).numpy()
+
+
 def project_and_shade(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, opacities: torch.Tensor,
                       sh0: torch.Tensor, shN: torch.Tensor, degree: int, K: torch.Tensor, c2w: torch.Tensor, height: int,
                       width: int, antialiased: bool = False) -> tuple[Projection, torch.Tensor]:
     """N Gaussians (means (N, 3), quats (N, 4), log_scales (N, 3), opacities (N,) in (0, 1), sh0 (N, 1, 3), shN
     (N, K - 1, 3)) seen by a pinhole camera (K (3, 3), OpenCV c2w (4, 4)) -> the :class:`Projection` of those drawn
     and their (M, 3) colours of SH ``degree``, as ``project`` and ``spherical_harmonics`` give them; CPU tensors,
-    no gradients."""
+    differentiable in the six Gaussian tensors (not in the camera)."""
     if not 0 <= degree <= 3 or shN.shape[1] < coefficients_for(degree) - 1:
         raise ValueError(f"project_and_shade of SH degree {degree} needs 0 <= degree <= 3 and shN (N, >= "
                          f"{coefficients_for(degree) - 1}, 3), got {tuple(shN.shape)}")
-    dtype = means.dtype
-    c2w = c2w.detach().to(torch.float64)
-    w2c = torch.linalg.inv(c2w)
-    K = K.detach().to(torch.float64)
-    camera = torch.cat([w2c[:3, :3].reshape(-1), w2c[:3, 3], K[0, 0:1], K[1, 1:2], K[0, 2:3], K[1, 2:3], c2w[:3, 3]])
-    arrays = [x.detach().contiguous().numpy() for x in (means, quats, log_scales, opacities, sh0, shN)]
-    if arrays[5].shape[1] == 0:  # numba needs an array it may index (never read at degree 0)
-        arrays[5] = np.zeros((len(arrays[0]), 1, 3), arrays[0].dtype)
-    n = len(arrays[0])
-    footprints = np.empty((n, 9), arrays[0].dtype)
-    colours = np.empty((n, 3), arrays[0].dtype)
-    seen = np.empty(n, np.bool_)
-    project_and_shade_loop(*arrays, degree, camera.to(dtype).numpy(), height, width, antialiased, footprints, colours, seen)
-    ids = np.flatnonzero(seen)
-    kept = torch.from_numpy(footprints[ids])
-    projection = Projection(torch.from_numpy(ids), kept[:, 0:2], kept[:, 2:5], kept[:, 5], kept[:, 6], kept[:, 7:9])
-    return projection, torch.from_numpy(colours[ids])
+    camera = camera_array(K, c2w, means.dtype)
+    means2d, conics, alphas, depths, colours, extents, ids = ProjectAndShade.apply(
+        means, quats, log_scales, opacities, sh0, shN, degree, camera, height, width, antialiased)
+    return Projection(ids, means2d, conics, alphas, depths, extents), colours

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -13,7 +14,7 @@ from nerf_lightning.splats import rasterizers
 from nerf_lightning.splats.projection import Projection, project
 from nerf_lightning.splats.rasterize import rasterize
 from nerf_lightning.splats.rasterize_dense import rasterize_dense
-from nerf_lightning.splats.rasterize_tiles import TILE, rasterize_tiles
+from nerf_lightning.splats.rasterize_tiles import TILE, depth_keys, nearest_first, rasterize_tiles
 from tests.splats.test_rasterize import camera, gaussians
 
 BACKGROUND = torch.tensor([0.2, 0.4, 0.9])
@@ -194,3 +195,14 @@ def test_without_numba_one_warning_then_the_pytorch_rasteriser(monkeypatch):
     said = [w for w in caught if "tile rasteriser is unavailable" in str(w.message)]
     assert len(said) == 1 and "pip install numba" in str(said[0].message)
     torch.testing.assert_close(out["rgb"], drawn(g, rasterize_dense, 20, 24)["rgb"], atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_radix_sort_orders_depths_as_a_stable_sort_does(dtype) -> None:
+    """Ties kept in index order (as the reference's stable sort keeps them), negative and tiny depths in place."""
+    rng = np.random.default_rng(0)
+    depths = np.concatenate([rng.normal(size=3000), np.full(40, 1.5), -np.abs(rng.normal(size=40)),
+                             [0.0, 1e-30, -1e-30, 1e30, -1e30]]).astype(dtype)
+    rng.shuffle(depths)
+    order = nearest_first(*depth_keys(depths))
+    assert np.array_equal(order, np.argsort(depths, kind="stable"))

@@ -14,7 +14,7 @@ from nerf_lightning.splats import rasterizers
 from nerf_lightning.splats.projection import Projection, project
 from nerf_lightning.splats.rasterize import rasterize
 from nerf_lightning.splats.rasterize_dense import rasterize_dense
-from nerf_lightning.splats.rasterize_tiles import TILE, depth_keys, nearest_first, rasterize_tiles
+from nerf_lightning.splats.rasterize_tiles import TILE, depth_keys, fade, nearest_first, rasterize_tiles
 from tests.splats.test_rasterize import camera, gaussians
 
 BACKGROUND = torch.tensor([0.2, 0.4, 0.9])
@@ -206,3 +206,10 @@ def test_the_radix_sort_orders_depths_as_a_stable_sort_does(dtype) -> None:
     rng.shuffle(depths)
     order = nearest_first(*depth_keys(depths))
     assert np.array_equal(order, np.argsort(depths, kind="stable"))
+
+
+def test_the_fall_off_polynomial_is_exp_where_the_loops_ask_it() -> None:
+    """Every sigma a loop evaluates lies in [0, log(255) + 1e-6]; checked a little past it."""
+    sigmas = np.linspace(0.0, 6.0, 100_001)
+    fades = np.array([fade(sigma) for sigma in sigmas[::97]])
+    np.testing.assert_allclose(fades, np.exp(-sigmas[::97]), rtol=3e-7, atol=0.0)

@@ -7,9 +7,10 @@ the strategy, for each rasteriser on the same Gaussians.
 Trains ``experiment=<--preset>`` through :func:`nerf_lightning.training.train` (validation, checkpoints, logger off)
 for ``--grow-steps`` steps with the fast rasteriser, so that the strategy has grown the Gaussians as a run does, then
 times ``--steps`` steps with each of ``--rasterizers`` in turn under ``torch.profiler``. The forward
-stages are the CPU time of their labels (``splats.project_and_shade`` where numba draws, else ``splats.project`` and ``splats.sh``, ``splats.rasterize``, ``splats.loss``; the
-strategy's ``splats.strategy``); ``backward`` (the whole backward pass, the rasteriser's included) and ``adam`` (the
-optimiser's update) are wall times between Lightning's hooks; ``step_s`` from the batch's start to its end.
+stages are the CPU time of their labels (``splats.project_and_shade`` where the tiles draw, else ``splats.project``
+and ``splats.sh``; ``splats.rasterize``, ``splats.loss``; the strategy's ``splats.strategy``); ``backward`` (the
+whole backward pass, the rasteriser's included) and ``adam`` (the optimiser's update) are wall times between
+Lightning's hooks; ``step_s`` from the batch's start to its end.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ from nerf_lightning.splats.sh import spherical_harmonics
 from nerf_lightning.training import train
 
 INSTANCES: list[StageProfiler] = []
-STAGES = ("splats.project_and_shade", "splats.project", "splats.sh", "splats.rasterize", "splats.loss", "splats.strategy")
+STAGES = ("splats.project_and_shade", "splats.project", "splats.sh", "splats.rasterize", "splats.loss",
+          "splats.strategy")
 
 
 class StageProfiler(L.Callback):

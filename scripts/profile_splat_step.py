@@ -16,7 +16,6 @@ Lightning's hooks; ``step_s`` from the batch's start to its end.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time

@@ -47,11 +47,8 @@ class DefaultStrategy:
     Every ``refine_every`` steps from ``refine_start`` until ``refine_stop``: a Gaussian whose mean screen-space
     gradient (in units of half the image, averaged over the views that saw it) exceeds ``grow_grad2d`` grows, by a
     clone where its largest scale is at most ``grow_scale3d`` of the scene scale, else by a split into two drawn from
-    it with scales / 1.6; then Gaussians under ``prune_opacity`` go, and after ``prune_large_after`` steps (unset: the
-    first reset) those larger than ``prune_scale3d`` of the scene scale too. The large ones keep going every
-    ``refine_every`` steps after ``refine_stop`` to the end of training, nothing else changing: a Gaussian that one
-    view needs thin can grow long along that view's rays late in a run, and cross the held-out views as a dark
-    needle (fox's photos, in short runs). Every ``reset_every`` steps (until ``refine_stop``) the opacities are
+    it with scales / 1.6; then Gaussians under ``prune_opacity`` go, and after ``reset_every`` steps those larger than
+    ``prune_scale3d`` of the scene scale too. Every ``reset_every`` steps (until ``refine_stop``) the opacities are
     cut to twice ``prune_opacity`` (their optimiser state zeroed), so that Gaussians the views do not need fade and
     are pruned. ``max_count`` caps the Gaussians: growth that would pass it is dropped, the largest gradients kept.
 
@@ -86,8 +83,6 @@ class DefaultStrategy:
         """(``means_lr`` is not used here.)"""
         if self.refine_start <= step < self.refine_stop and step % self.refine_every == 0 and self.grad_sum is not None:
             self.refine(gaussians, step, replace)
-        elif step >= self.refine_stop and step > self.prune_large_after and step % self.refine_every == 0:
-            self.prune_large(gaussians, replace)
         if 0 < step < self.refine_stop and step % self.reset_every == 0:
             self.reset_opacities(gaussians, replace)
 
@@ -128,15 +123,6 @@ class DefaultStrategy:
         gaussians.edit({name: value[kept] for name, value in merged.items()}, rows_from[kept], replace)
         log.debug("step %d: %d cloned, %d split, %d pruned: %d Gaussians", step, len(cloned), len(halves), int(prune.sum()), len(kept))
         self.grad_sum = self.seen = None
-
-    @torch.no_grad()
-    def prune_large(self, gaussians: Gaussians, replace: Replace) -> None:
-        """Prune the Gaussians larger than ``prune_scale3d`` of the scene scale, the rest as they are."""
-        large = torch.exp(gaussians.log_scales.detach()).amax(dim=-1) > self.prune_scale3d * self.scene_scale
-        if bool(large.any()):
-            kept = torch.nonzero(~large).squeeze(1)
-            gaussians.edit({name: getattr(gaussians, name).detach()[kept] for name in PARAMETERS}, kept, replace)
-            log.debug("%d large Gaussians pruned: %d Gaussians", int(large.sum()), len(kept))
 
     def loss(self, gaussians: Gaussians) -> torch.Tensor | None:
         """No regulariser."""

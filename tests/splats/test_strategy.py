@@ -184,23 +184,3 @@ def test_large_gaussians_are_pruned_only_after_prune_large_after_or_the_first_re
     strategy.after_step(g, step=step, replace=replace, means_lr=0.0)
     assert len(g) == (90 if pruned else 100)
     assert float(torch.exp(g.log_scales.detach()).amax()) == pytest.approx(0.01 if pruned else 0.5, rel=1e-2)
-
-
-@pytest.mark.parametrize(("step", "pruned"), [(1050, False), (1100, True), (1300, True)])
-def test_large_gaussians_keep_being_pruned_after_refinement_stops(step, pruned):
-    """After ``refine_stop`` nothing grows and nothing faint goes, but every ``refine_every`` steps the large go."""
-    g = gaussians_for(100)
-    with torch.no_grad():
-        g.log_scales[:] = math.log(0.01)
-        g.log_scales[:10] = math.log(0.5)  # over prune_scale3d (0.1) of the scene scale (1)
-        g.opacity_logits[:] = 2.0
-        g.opacity_logits[10:20] = -8.0  # under prune_opacity: left alone once refinement has stopped
-    optimizer, replace = stepped_optimizer(g)
-    strategy = DefaultStrategy(refine_start=0, refine_stop=1000, refine_every=100, reset_every=300, prune_large_after=600)
-    means2d = torch.zeros(100, 2, requires_grad=True)
-    means2d.grad = torch.ones(100, 2)  # gradients that would grow every Gaussian while refining
-    strategy.after_backward(g, Projection(torch.arange(100), means2d, torch.zeros(100, 3), torch.zeros(100), torch.zeros(100),
-                                          torch.zeros(100, 2)), width=2, height=2)
-    strategy.after_step(g, step=step, replace=replace, means_lr=0.0)
-    assert len(g) == (90 if pruned else 100)
-    assert float(torch.exp(g.log_scales.detach()).amax()) == pytest.approx(0.01 if pruned else 0.5, rel=1e-2)

@@ -379,12 +379,14 @@ class ProjectAndShade(torch.autograd.Function):
 
 
 def camera_array(K: torch.Tensor, c2w: torch.Tensor, dtype: torch.dtype) -> np.ndarray:
-    """(19,) the loops' camera: world-to-camera rotation (row-major) and translation, fx, fy, cx, cy, the centre."""
-    c2w = c2w.detach().to(torch.float64)
-    w2c = torch.linalg.inv(c2w)
-    K = K.detach().to(torch.float64)
-    camera = torch.cat([w2c[:3, :3].reshape(-1), w2c[:3, 3], K[0, 0:1], K[1, 1:2], K[0, 2:3], K[1, 2:3], c2w[:3, 3]])
-    return camera.to(dtype).numpy()
+    """(19,) the loops' camera: world-to-camera rotation (row-major) and translation, fx, fy, cx, cy, the centre.
+    Inverted in numpy's float64, not torch's: a training step makes no float64 tensor (Apple GPUs have none)."""
+    c2w_array = c2w.detach().cpu().numpy().astype(np.float64)
+    w2c = np.linalg.inv(c2w_array)
+    K_array = K.detach().cpu().numpy().astype(np.float64)
+    camera = np.concatenate([w2c[:3, :3].reshape(-1), w2c[:3, 3], [K_array[0, 0], K_array[1, 1], K_array[0, 2],
+                                                                    K_array[1, 2]], c2w_array[:3, 3]])
+    return camera.astype(torch.empty((), dtype=dtype).numpy().dtype)
 
 
 def project_and_shade(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, opacities: torch.Tensor,

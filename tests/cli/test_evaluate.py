@@ -5,6 +5,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from nerf_lightning.training import train
 
 QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]
@@ -24,6 +26,7 @@ def test_eval_on_a_missing_second_capture_is_named(tmp_path, make_config):
     assert not (tmp_path / "eval" / "eval.json").exists()
 
 
+@pytest.mark.slow  # trains and evaluates twice; tests/outputs/test_lpips.py holds the network in CI
 def test_eval_adds_lpips_with_weights_and_says_once_why_it_is_absent_without(tmp_path, make_config):
     from tests.outputs.test_lpips import written_weights
 

@@ -161,6 +161,7 @@ def test_appearance_and_camera_refinement_train_and_load_from_their_checkpoint(m
     assert [group["lr"] for group in optimizer.param_groups] == [model.make_optimizer.keywords["lr"], 6e-4]
 
 
+@pytest.mark.slow  # half a minute of pose fitting; CI keeps under 20 minutes
 def test_camera_refinement_recovers_a_perturbed_pose_against_the_trained_field(trained, scene_cache, monkeypatch):
     """A training view's camera turned by 2.3 degrees and moved by 0.08 (about 2 px on its 100x100 image): its
     correction, learnt against the trained field (held still) from that view's pixels alone, brings the view's true

@@ -121,6 +121,7 @@ QUICK_NERFACTO = ["experiment=nerfacto_360_cpu", "data.scene.downscale=2", "data
 NERFACTO_PSNR_BAR_DB = 15.0
 
 
+@pytest.mark.slow  # a real preset trained; test_an_unbounded_capture_trains_with_a_contracted_field stays in CI
 def test_the_360_preset_trains_on_a_capture_in_its_own_coordinates(capture, tmp_path):
     root, _ = capture
     metrics = train(compose_config([*QUICK_NERFACTO, f"data.root={root}", f"paths.output_dir={tmp_path / 'run'}"]))

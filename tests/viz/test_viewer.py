@@ -481,6 +481,7 @@ def test_nerf_view_in_the_browser(trained, browser, scene_cache, monkeypatch, tm
         viewer.server.stop()
 
 
+@pytest.mark.slow  # half a minute of browser; test_nerf_view_in_the_browser drives the page in CI
 @needs_browser
 def test_a_path_framed_in_the_browser_is_saved_and_rendered(trained, browser, scene_cache, monkeypatch, tmp_path):
     """The page's Camera path folder: three views added as keyframes with its button, the second removed, the preview

@@ -1,18 +1,20 @@
 #!/usr/bin/env bash
-# Issue 47's GPU check in one lease: scripts/gpu_check.sh OUT_DIR (the device's $OUT), from the repository root, with
-# the wheels in .whl/ and lego in .gpu_data/nerf_synthetic/lego (100 train views, 10 val views). In this order, each
-# step guarded (a failure goes on to the next) and cut to the time left before GPU_CHECK_DEADLINE seconds:
+# A GPU lease in one call: scripts/gpu_check.sh OUT_DIR (the device's $OUT), from the repository root, with the
+# wheels in .whl/ and the data in .gpu_data/ (what fits the lease's 64 MiB: lego with 25 of its train views and 5 val
+# views at 800x800, fox, moldGoldCape's images_4 and masks_4). In this order, each step guarded (a failure goes on to
+# the next) and cut to the time left before GPU_CHECK_DEADLINE seconds:
 #   a. setup: the wheels into /tmp/site, the project on PYTHONPATH; torch, CUDA and the GPU's name
-#   b. tests that touch devices, precision, compiling and the fixed-shape step (CUDA where there is one), bounded to
-#      GPU_CHECK_TEST_SECONDS, beside f (neither is timed)
-#   f. CountHostSyncs over a few hundred plain steps of fast_blender_gpu (past the grid's warm-up) -> OUT/syncs.json
-#   c. fast_blender_gpu as shipped, 3 minutes, scored at 1, 2, 3 on the 10 val views -> OUT/fast.json
-#   e. splat_blender_gpu, 3 minutes, scored at 1, 2, 3 -> OUT/splat.json
-#   d. fast_blender_gpu with model.compile=false, 1 minute (or what is left of the lease) -> OUT/nocompile.json
-# then OUT/summary.txt. OUT gets 8 files: log.txt (everything), summary.txt, junit.xml, syncs.json, fast.json,
-# splat.json, nocompile.json, smi.csv (nvidia-smi once a second).
-#   GPU_CHECK_STEPS="tests syncs fast splat nocompile"  the steps to run (a second call: GPU_CHECK_STEPS=nocompile)
-#   GPU_CHECK_DEADLINE=575  seconds from the start by which everything has ended (the run tool's limit is 600)
+#   b. the README's test command (CUDA where there is one) over pytest-xdist workers, bounded to GPU_CHECK_TEST_SECONDS
+#   rows of scripts/gpu_check.yaml through nerf-bench, one at a time (timed; nothing beside them):
+#   splat:    splat_blender_gpu, lego 800x800                        -> OUT/splat.json
+#   splatfox: splat_360_gpu, fox                                     -> OUT/splatfox.json
+#   fast:     fast_blender_gpu, lego 800x800 (compiled)              -> OUT/fast.json
+#   cape:     nerfacto_360_gpu, moldGoldCape masked, downscale 4     -> OUT/cape.json
+#   (syncs: issue 47's CountHostSyncs over plain fast_blender_gpu steps, when named)
+# then OUT/summary.txt. OUT gets at most 8 files: log.txt (everything), summary.txt, junit.xml, smi.csv (nvidia-smi
+# once a second) and the rows' JSON.
+#   GPU_CHECK_STEPS="tests splat splatfox fast cape"  the steps to run
+#   GPU_CHECK_DEADLINE=565  seconds from the start by which everything has ended (the run tool's limit is 600)
 #   GPU_CHECK_SMOKE=1  on a CPU: the project's .venv, no wheels, rows of seconds on tiny views (checks the plumbing)
 set -u
 OUT=${1:?usage: scripts/gpu_check.sh OUT_DIR}
@@ -22,9 +24,9 @@ cd "$REPO" || exit 1
 export PYTHONUNBUFFERED=1
 START=$(date +%s)
 SMOKE=${GPU_CHECK_SMOKE:-0}
-STEPS=" ${GPU_CHECK_STEPS:-tests syncs fast splat nocompile} "
-DEADLINE=${GPU_CHECK_DEADLINE:-575}
-TEST_SECONDS=${GPU_CHECK_TEST_SECONDS:-60}
+STEPS=" ${GPU_CHECK_STEPS:-tests splat splatfox fast cape} "
+DEADLINE=${GPU_CHECK_DEADLINE:-565}
+TEST_SECONDS=${GPU_CHECK_TEST_SECONDS:-140}
 WORK=${GPU_CHECK_WORK:-/tmp/gpu_check}
 DATA=.gpu_data
 SUITE=scripts/gpu_check.yaml
@@ -92,19 +94,18 @@ if command -v nvidia-smi >/dev/null; then
 fi
 
 # ---- b. tests, f. host syncs (side by side: neither is timed) -------------------------------------------------------
-TESTS=(tests/models/test_compiled_step.py tests/rendering/test_fixed_shapes.py tests/test_devices_and_precision.py
-       tests/test_experiments.py tests/test_syncs.py tests/fields/test_hash_grid_fast.py tests/fields/test_hash_grid.py
-       tests/rendering/test_occupancy.py tests/data/test_batches.py tests/bench/test_callbacks.py tests/bench/test_figures.py)
+# the whole suite, as the README runs it (its pyproject options: not the slow tests)
+TESTS=(tests)
 SYNC_STEPS=300 SYNC_WARMUP=256 SYNC_OVERRIDES=()
 if [ "$SMOKE" = 1 ]; then
-    TESTS=(tests/test_syncs.py tests/bench/test_figures.py)
+    TESTS=(tests/test_syncs.py tests/bench/test_figures.py tests/test_metrics.py)
     SYNC_STEPS=8 SYNC_WARMUP=4 SYNC_OVERRIDES=(data.scene.downscale=8 model.field.encoding.log2_table_size=14 model.sampler.grid.resolution=32 model.sampler.capacity=16384
         model.sampler.march_capacity=65536 data.batch_size=256 model.sampler.grid.warmup_steps=4 model.sampler.grid.update_every=2)
 fi
 echo "$SYNC_WARMUP" >"$WORK/sync_warmup.txt"
 run_tests() {
     local workers=()
-    if [ "$SMOKE" != 1 ] && $PY -c "import xdist" 2>/dev/null; then workers=(-n "${GPU_CHECK_TEST_WORKERS:-6}"); fi
+    if [ "$SMOKE" != 1 ] && $PY -c "import xdist" 2>/dev/null; then workers=(-n "${GPU_CHECK_TEST_WORKERS:-14}"); fi
     # SIGINT at the limit: pytest stops where it is and still writes junit.xml
     # (inductor's compile workers: a few a test worker, not one a core each)
     TORCHINDUCTOR_COMPILE_THREADS=4 timeout -s INT -k 20 "$TEST_SECONDS" $PY -m pytest "${workers[@]}" -q -rfE --tb=short --durations=15 \
@@ -168,9 +169,10 @@ bench() {
         tr '\r' '\n' <"$log" | grep -v '^\s*$' | tail -n 25 | tee -a "$LOG"
     done
 }
-wants fast && bench fast lego/fast_blender_gpu/3min/seed0 3 75 0.5
-wants splat && bench splat lego/splat_blender_gpu/3min/seed0 3 50 0.5
-wants nocompile && bench nocompile lego/fast_blender_gpu/1min/seed0 1 40 0.35
+wants splat && bench splat lego/splat_blender_gpu/1min/seed0 1 45 0.5
+wants splatfox && bench splatfox fox/splat_360_gpu/1min/seed0 1 45 0.5
+wants fast && bench fast lego/fast_blender_gpu/1min/seed0 1 60 0.5
+wants cape && bench cape moldGoldCape/nerfacto_360_gpu/1min/seed0 1 45 0.5
 
 # ---- summary --------------------------------------------------------------------------------------------------------
 [ -n "$SMI_PID" ] && kill "$SMI_PID" 2>/dev/null

@@ -28,7 +28,7 @@ STEPS=" ${GPU_CHECK_STEPS:-tests splat splatfox fast cape} "
 DEADLINE=${GPU_CHECK_DEADLINE:-565}
 TEST_SECONDS=${GPU_CHECK_TEST_SECONDS:-140}
 WORK=${GPU_CHECK_WORK:-/tmp/gpu_check}
-DATA=.gpu_data
+DATA=$REPO/.gpu_data
 SUITE=scripts/gpu_check.yaml
 LOG=$OUT/log.txt
 rm -rf "$WORK" && mkdir -p "$WORK"
@@ -46,6 +46,21 @@ if [ "$SMOKE" = 1 ]; then
     PY=${GPU_CHECK_PYTHON:-$REPO/.venv/bin/python}
     export PYTHONPATH=$REPO
     say "smoke run on this machine's CPU with $PY: no wheels, tiny rows"
+    # moldGoldCape at downscale 16 (its smoke row): images_16 and masks_16 made from the carried images_4 and masks_4
+    SMOKE_DATA=$WORK/smoke_data
+    mkdir -p "$SMOKE_DATA/masked_objects" && ln -sfn "$DATA/nerf_synthetic" "$SMOKE_DATA/nerf_synthetic" && ln -sfn "$DATA/nerfstudio" "$SMOKE_DATA/nerfstudio"
+    $PY - "$DATA/masked_objects/moldGoldCape" "$SMOKE_DATA/masked_objects/moldGoldCape" <<'PYTHON' || say "smoke: no small moldGoldCape"
+import shutil, sys
+from pathlib import Path
+import imageio.v3 as iio
+source, target = Path(sys.argv[1]), Path(sys.argv[2])
+for name in ("images", "masks"):
+    (target / f"{name}_16").mkdir(parents=True, exist_ok=True)
+    for path in sorted((source / f"{name}_4").iterdir()):
+        iio.imwrite(target / f"{name}_16" / path.name, iio.imread(path)[::4, ::4])
+shutil.copy(source / "poses_bounds.npy", target)
+PYTHON
+    DATA=$SMOKE_DATA
 else
     PY=python3
     say "installing $(ls .whl/*.whl | wc -l) wheels into /tmp/site"
@@ -117,7 +132,7 @@ run_syncs() {
     # graph), past the grid's 256 warm-up steps so that its refreshes after warm-up are counted too; a stop after
     # training minutes so that syncs.json is written even if the steps are slow
     timeout -k 10 $((TEST_SECONDS + 20)) $PY -m nerf_lightning.cli.train experiment=fast_blender_gpu \
-        data.root="$REPO/$DATA/nerf_synthetic/lego" model.compile=false trainer.max_steps=$SYNC_STEPS data.val_every=null \
+        data.root="$DATA/nerf_synthetic/lego" model.compile=false trainer.max_steps=$SYNC_STEPS data.val_every=null \
         "${SYNC_OVERRIDES[@]}" paths.output_dir="$WORK/syncs_run" \
         "+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: $OUT/syncs.json}" \
         "+callbacks.sync_stop={_target_: nerf_lightning.bench.callbacks.StopAtTrainingMinutes, minutes: $(awk "BEGIN{m = ($TEST_SECONDS - 25) / 60; print (m > 0.2) ? m : 0.2}")}" \

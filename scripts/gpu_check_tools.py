@@ -109,8 +109,8 @@ def warning_lines(folder: Path) -> list[str]:
     return lines
 
 
-def test_lines(junit: Path, log: Path) -> list[str]:
-    lines = ["== tests (CUDA where the machine has it)"]
+def test_lines(junit: Path, log: Path, which: str = "tests") -> list[str]:
+    lines = [f"== {which} (CUDA where the machine has it)"]
     if not junit.exists():
         return [*lines, "  no junit.xml: the tests did not run or were killed; see log.txt"]
     root = ElementTree.parse(junit).getroot()
@@ -180,11 +180,13 @@ def summary(out: Path, work: Path) -> str:
     for name in ("env.txt", "cut.txt"):
         if (work / name).exists():
             lines += (work / name).read_text().rstrip().splitlines()
-    lines += test_lines(out / "junit.xml", work / "tests.log")
+    if (out / "junit_device.xml").exists():
+        lines += test_lines(out / "junit_device.xml", work / "tests.log", "the test files that touch a GPU")
+    lines += test_lines(out / "junit.xml", work / "tests.log", "the other tests")
     lines += sync_lines(out / "syncs.json", warmup=int((work / "sync_warmup.txt").read_text()) if (work / "sync_warmup.txt").exists() else 2)
     for name in ("splat", "splatfox", "fast", "cape", "nocompile"):
         lines += bench_lines(name, out / f"{name}.json", work)
-    lines += utilisation_lines(out / "smi.csv", work / "phases.txt")
+    lines += utilisation_lines(work / "smi.csv", work / "phases.txt")
     text = "\n".join(lines) + "\n"
     (out / "summary.txt").write_text(text)
     return text

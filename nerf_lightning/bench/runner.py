@@ -223,15 +223,19 @@ def main(argv: list[str] | None = None) -> None:
     run.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="folder of the suites' results JSONs")
     run.add_argument("--report", type=Path, default=DEFAULT_REPORT, help="the results table regenerated after each row")
     run.add_argument("--work", type=Path, default=DEFAULT_WORK, help="where the runs (checkpoints, logs, renders) go")
-    run.add_argument("--readme", type=Path, default=DEFAULT_README, help="whose results table (between its marker lines) is regenerated too")
+    run.add_argument("--readme", type=Path, default=None,
+                     help=f"whose results table (between its marker lines) is regenerated too (default: {DEFAULT_README} where --results is "
+                          f"{DEFAULT_RESULTS}, else none: rows kept elsewhere do not replace the README's table)")
     run.add_argument("--allow-dirty", action="store_true", help="measure a checkout with uncommitted changes (the rows say +dirty)")
     report = commands.add_parser("report", help="regenerate the results table and plots from the results JSONs")
     report.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
     report.add_argument("--report", type=Path, default=DEFAULT_REPORT)
-    report.add_argument("--readme", type=Path, default=DEFAULT_README)
+    report.add_argument("--readme", type=Path, default=None, help="as for run")
     listing = commands.add_parser("list", help="the suites and their rows")
     listing.add_argument("suite", nargs="?")
     args = parser.parse_args(argv)
+    if args.command in ("run", "report") and args.readme is None and args.results == DEFAULT_RESULTS:
+        args.readme = DEFAULT_README
 
     try:
         if args.command == "list":

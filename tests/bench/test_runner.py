@@ -74,6 +74,21 @@ def test_the_results_table_and_plot_are_generated(quick_row):
     assert (folder / "results.md").read_text() == report
 
 
+def test_rows_kept_outside_docs_results_leave_the_readmes_table_alone(quick_row, tmp_path):
+    """A run or report into another results folder (a GPU lease's, a smoke run's) does not replace the README's table
+    with its own rows; --readme names one to write."""
+    folder, _ = quick_row
+    readme = tmp_path / "README.md"
+    text = "# A project\n\n<!-- results table: nerf-bench report writes it -->\nby hand\n<!-- end of the results table -->\n"
+    readme.write_text(text)
+    results = folder / "results"
+    assert bench("report", "--results", str(results), "--report", str(tmp_path / "results.md"), cwd=tmp_path).returncode == 0
+    assert readme.read_text() == text
+    assert bench("report", "--results", str(results), "--report", str(tmp_path / "results.md"), "--readme", "README.md",
+                 cwd=tmp_path).returncode == 0
+    assert "by hand" not in readme.read_text()
+
+
 def test_the_readmes_table_is_regenerated_between_its_marker_lines(quick_row):
     folder, _ = quick_row
     readme = (folder / "README.md").read_text()

@@ -50,6 +50,41 @@ def _sh_colour(degree, sh0, shN, g, x, y, z, channel):
     return max(colour + 0.5, 0.0)
 
 
+@numba.njit(inline="always", error_model="numpy")
+def _unit_rotation(pw, px, py, pz):
+    """The quaternion (w, x, y, z) normalised, its norm, and its rotation matrix's nine entries (row-major)."""
+    pw, px, py, pz = np.float64(pw), np.float64(px), np.float64(py), np.float64(pz)
+    norm = max(math.sqrt(pw * pw + px * px + py * py + pz * pz), 1e-12)
+    qw, qx, qy, qz = pw / norm, px / norm, py / norm, pz / norm
+    return (qw, qx, qy, qz, norm,
+            1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy),
+            2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx),
+            2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy))
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _product(r00, r01, r02, r10, r11, r12, r20, r21, r22, m00, m01, m02, m10, m11, m12, m20, m21, m22):
+    """The 3x3 product R M, row-major."""
+    return (r00 * m00 + r01 * m10 + r02 * m20, r00 * m01 + r01 * m11 + r02 * m21, r00 * m02 + r01 * m12 + r02 * m22,
+            r10 * m00 + r11 * m10 + r12 * m20, r10 * m01 + r11 * m11 + r12 * m21, r10 * m02 + r11 * m12 + r12 * m22,
+            r20 * m00 + r21 * m10 + r22 * m20, r20 * m01 + r21 * m11 + r22 * m21, r20 * m02 + r21 * m12 + r22 * m22)
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _ewa_rows(x, y, z, fx, fy, limit_x0, limit_x1, limit_y0, limit_y1,
+              a00, a01, a02, a10, a11, a12, a20, a21, a22):
+    """The EWA Jacobian J at the camera-space mean (x, y, z), its x / z and y / z clamped to the limits (as the
+    reference clamps them), and the footprint's axes U = J A (its rows u, v; the footprint's covariance is U U^T)
+    for the Gaussian's axes A in the camera. Returns x / z, y / z, both clamped, tx, ty, J's four entries, u, v."""
+    ratio_x, ratio_y = x / z, y / z
+    clamped_x, clamped_y = min(max(ratio_x, limit_x0), limit_x1), min(max(ratio_y, limit_y0), limit_y1)
+    tx, ty = z * clamped_x, z * clamped_y
+    j00, j02, j11, j12 = fx / z, -fx * tx / (z * z), fy / z, -fy * ty / (z * z)
+    return (ratio_x, ratio_y, clamped_x, clamped_y, tx, ty, j00, j02, j11, j12,
+            j00 * a00 + j02 * a20, j00 * a01 + j02 * a21, j00 * a02 + j02 * a22,
+            j11 * a10 + j12 * a20, j11 * a11 + j12 * a21, j11 * a12 + j12 * a22)
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def project_and_shade_loop(means, quats, log_scales, opacities, sh0, shN, degree, camera, height, width, antialiased,
                            footprints, colours, seen):
@@ -72,29 +107,15 @@ def project_and_shade_loop(means, quats, log_scales, opacities, sh0, shN, degree
         if not z > NEAR_PLANE:
             continue
         # the covariance R S S^T R^T from the normalised quaternion (w, x, y, z)
-        qw, qx, qy, qz = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
-        norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
-        qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        (_, _, _, _, _, q00, q01, q02, q10, q11, q12, q20, q21, q22) = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3])
         s0, s1, s2 = math.exp(log_scales[g, 0]), math.exp(log_scales[g, 1]), math.exp(log_scales[g, 2])
-        m00, m01, m02 = (1.0 - 2.0 * (qy * qy + qz * qz)) * s0, 2.0 * (qx * qy - qw * qz) * s1, 2.0 * (qx * qz + qw * qy) * s2
-        m10, m11, m12 = 2.0 * (qx * qy + qw * qz) * s0, (1.0 - 2.0 * (qx * qx + qz * qz)) * s1, 2.0 * (qy * qz - qw * qx) * s2
-        m20, m21, m22 = 2.0 * (qx * qz - qw * qy) * s0, 2.0 * (qy * qz + qw * qx) * s1, (1.0 - 2.0 * (qx * qx + qy * qy)) * s2
         # W (R S): the Gaussian's axes in the camera; its covariance there is (W R S)(W R S)^T
-        a00 = r00 * m00 + r01 * m10 + r02 * m20
-        a01 = r00 * m01 + r01 * m11 + r02 * m21
-        a02 = r00 * m02 + r01 * m12 + r02 * m22
-        a10 = r10 * m00 + r11 * m10 + r12 * m20
-        a11 = r10 * m01 + r11 * m11 + r12 * m21
-        a12 = r10 * m02 + r11 * m12 + r12 * m22
-        a20 = r20 * m00 + r21 * m10 + r22 * m20
-        a21 = r20 * m01 + r21 * m11 + r22 * m21
-        a22 = r20 * m02 + r21 * m12 + r22 * m22
-        tx = z * min(max(x / z, limit_x0), limit_x1)
-        ty = z * min(max(y / z, limit_y0), limit_y1)
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = _product(r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                                                               q00 * s0, q01 * s1, q02 * s2, q10 * s0, q11 * s1,
+                                                               q12 * s2, q20 * s0, q21 * s1, q22 * s2)
         # J (W R S): the footprint's covariance is its Gram matrix
-        j00, j02, j11, j12 = fx / z, -fx * tx / (z * z), fy / z, -fy * ty / (z * z)
-        u0, u1, u2 = j00 * a00 + j02 * a20, j00 * a01 + j02 * a21, j00 * a02 + j02 * a22
-        v0, v1, v2 = j11 * a10 + j12 * a20, j11 * a11 + j12 * a21, j11 * a12 + j12 * a22
+        (_, _, _, _, _, _, _, _, _, _, u0, u1, u2, v0, v1, v2) = _ewa_rows(x, y, z, fx, fy, limit_x0, limit_x1, limit_y0, limit_y1,
+                                                                        a00, a01, a02, a10, a11, a12, a20, a21, a22)
         f00, f01, f11 = u0 * u0 + u1 * u1 + u2 * u2, u0 * v0 + u1 * v1 + u2 * v2, v0 * v0 + v1 * v1 + v2 * v2
         a, b, c = f00 + LOW_PASS, f01, f11 + LOW_PASS
         determinant = a * c - b * b
@@ -143,31 +164,15 @@ def project_and_shade_backward_loop(means, quats, log_scales, opacities, sh0, sh
         x = r00 * mx + r01 * my + r02 * mz + t0
         y = r10 * mx + r11 * my + r12 * mz + t1
         z = r20 * mx + r21 * my + r22 * mz + t2
-        pw, px, py, pz = np.float64(quats[g, 0]), np.float64(quats[g, 1]), np.float64(quats[g, 2]), np.float64(quats[g, 3])
-        norm = max(math.sqrt(pw * pw + px * px + py * py + pz * pz), 1e-12)
-        qw, qx, qy, qz = pw / norm, px / norm, py / norm, pz / norm
+        (qw, qx, qy, qz, norm, q00, q01, q02, q10, q11, q12, q20, q21, q22) = _unit_rotation(quats[g, 0], quats[g, 1], quats[g, 2],
+                                                                                              quats[g, 3])
         s0, s1, s2 = math.exp(log_scales[g, 0]), math.exp(log_scales[g, 1]), math.exp(log_scales[g, 2])
-        q00, q01, q02 = 1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy)
-        q10, q11, q12 = 2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx)
-        q20, q21, q22 = 2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy)
-        m00, m01, m02 = q00 * s0, q01 * s1, q02 * s2
-        m10, m11, m12 = q10 * s0, q11 * s1, q12 * s2
-        m20, m21, m22 = q20 * s0, q21 * s1, q22 * s2
-        a00 = r00 * m00 + r01 * m10 + r02 * m20
-        a01 = r00 * m01 + r01 * m11 + r02 * m21
-        a02 = r00 * m02 + r01 * m12 + r02 * m22
-        a10 = r10 * m00 + r11 * m10 + r12 * m20
-        a11 = r10 * m01 + r11 * m11 + r12 * m21
-        a12 = r10 * m02 + r11 * m12 + r12 * m22
-        a20 = r20 * m00 + r21 * m10 + r22 * m20
-        a21 = r20 * m01 + r21 * m11 + r22 * m21
-        a22 = r20 * m02 + r21 * m12 + r22 * m22
-        ratio_x, ratio_y = x / z, y / z
-        clamped_x, clamped_y = min(max(ratio_x, limit_x0), limit_x1), min(max(ratio_y, limit_y0), limit_y1)
-        tx, ty = z * clamped_x, z * clamped_y
-        j00, j02, j11, j12 = fx / z, -fx * tx / (z * z), fy / z, -fy * ty / (z * z)
-        u0, u1, u2 = j00 * a00 + j02 * a20, j00 * a01 + j02 * a21, j00 * a02 + j02 * a22
-        v0, v1, v2 = j11 * a10 + j12 * a20, j11 * a11 + j12 * a21, j11 * a12 + j12 * a22
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = _product(r00, r01, r02, r10, r11, r12, r20, r21, r22,
+                                                               q00 * s0, q01 * s1, q02 * s2, q10 * s0, q11 * s1,
+                                                               q12 * s2, q20 * s0, q21 * s1, q22 * s2)
+        (ratio_x, ratio_y, clamped_x, clamped_y, tx, ty, j00, j02, j11, j12,
+         u0, u1, u2, v0, v1, v2) = _ewa_rows(x, y, z, fx, fy, limit_x0, limit_x1, limit_y0, limit_y1,
+                                              a00, a01, a02, a10, a11, a12, a20, a21, a22)
         f00, f01, f11 = u0 * u0 + u1 * u1 + u2 * u2, u0 * v0 + u1 * v1 + u2 * v2, v0 * v0 + v1 * v1 + v2 * v2
         a, b, c = f00 + LOW_PASS, f01, f11 + LOW_PASS
         determinant = a * c - b * b
@@ -210,15 +215,8 @@ def project_and_shade_backward_loop(means, quats, log_scales, opacities, sh0, sh
         ga10, ga11, ga12 = j11 * gv0, j11 * gv1, j11 * gv2
         ga20, ga21, ga22 = j02 * gu0 + j12 * gv0, j02 * gu1 + j12 * gv1, j02 * gu2 + j12 * gv2
         # A = W M: d M = W^T d A
-        gm00 = r00 * ga00 + r10 * ga10 + r20 * ga20
-        gm01 = r00 * ga01 + r10 * ga11 + r20 * ga21
-        gm02 = r00 * ga02 + r10 * ga12 + r20 * ga22
-        gm10 = r01 * ga00 + r11 * ga10 + r21 * ga20
-        gm11 = r01 * ga01 + r11 * ga11 + r21 * ga21
-        gm12 = r01 * ga02 + r11 * ga12 + r21 * ga22
-        gm20 = r02 * ga00 + r12 * ga10 + r22 * ga20
-        gm21 = r02 * ga01 + r12 * ga11 + r22 * ga21
-        gm22 = r02 * ga02 + r12 * ga12 + r22 * ga22
+        gm00, gm01, gm02, gm10, gm11, gm12, gm20, gm21, gm22 = _product(r00, r10, r20, r01, r11, r21, r02, r12, r22,
+                                                                        ga00, ga01, ga02, ga10, ga11, ga12, ga20, ga21, ga22)
         # M = R(q) diag(s): the log scales and the rotation
         grad_log_scales[g, 0] = (gm00 * q00 + gm10 * q10 + gm20 * q20) * s0
         grad_log_scales[g, 1] = (gm01 * q01 + gm11 * q11 + gm21 * q21) * s1

@@ -41,6 +41,8 @@ from nerf_lightning.splats.rasterize import pixel_boxes
 
 # a tile's side in pixels (3DGS's and gsplat's 16)
 TILE = 16
+# what the loops draw a footprint with: its colour (3) and its depth, the last, by which the footprints are ordered
+FEATURES = 4
 
 
 def depth_keys(depths: np.ndarray) -> tuple[np.ndarray, int]:
@@ -307,8 +309,8 @@ class TileRasterize(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int):
-        if features.ndim != 2 or features.shape[1] != 4:
-            raise ValueError(f"TileRasterize draws (M, 4) features (colour and depth), got {tuple(features.shape)}")
+        if features.ndim != 2 or features.shape[1] != FEATURES:
+            raise ValueError(f"TileRasterize draws (M, {FEATURES}) features (colour and depth), got {tuple(features.shape)}")
         tile = TILE
         tiles_x, tiles_y = -(-width // tile), -(-height // tile)
         arrays = tuple(_numpy(x) for x in (means2d, conics, opacities, features))
@@ -316,7 +318,7 @@ class TileRasterize(torch.autograd.Function):
         box_array = _numpy(boxes)
         offsets, entries, slot_offsets, slots = bin_footprints(*depth_keys(arrays[3][:, -1]), box_array, tiles_x, tiles_y)
         n_pixels, dtype = height * width, arrays[3].dtype
-        shaded = np.empty((n_pixels, arrays[3].shape[1]), dtype)
+        shaded = np.empty((n_pixels, FEATURES), dtype)
         accumulation = np.empty(n_pixels, dtype)
         transmittance = np.empty(n_pixels, np.float64)
         stop = np.empty(n_pixels, np.int64)
@@ -327,15 +329,15 @@ class TileRasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_shaded, grad_accumulation):
         offsets, entries, slot_offsets, slots, box_array, arrays, transmittance, stop, height, width, tile, tiles_x = ctx.saved
-        n_features, dtype = arrays[3].shape[1], arrays[3].dtype
-        grad_shaded = np.zeros((height * width, n_features), dtype) if grad_shaded is None else \
-            _numpy(grad_shaded).astype(dtype, copy=False).reshape(-1, n_features)
+        dtype = arrays[3].dtype
+        grad_shaded = np.zeros((height * width, FEATURES), dtype) if grad_shaded is None else \
+            _numpy(grad_shaded).astype(dtype, copy=False).reshape(-1, FEATURES)
         grad_accumulation = np.zeros(height * width, dtype) if grad_accumulation is None else \
             _numpy(grad_accumulation).astype(dtype, copy=False).reshape(-1)
-        slot_grads = np.empty((len(entries), 6 + n_features), np.float64)
+        slot_grads = np.empty((len(entries), 6 + FEATURES), np.float64)
         composite_tiles_backward(offsets, entries, box_array, *arrays, height, width, tile, tiles_x, transmittance, stop,
                                  grad_shaded, grad_accumulation, slot_grads)
-        grads = np.zeros((len(arrays[2]), 6 + n_features), np.float64)
+        grads = np.zeros((len(arrays[2]), 6 + FEATURES), np.float64)
         sum_slots(slot_offsets, slots, slot_grads, grads)
         grads = torch.from_numpy(grads.astype(dtype))
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None

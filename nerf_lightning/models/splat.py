@@ -120,6 +120,8 @@ class SplatModule(SceneModule):
         self.scene_scale.fill_(1.1 * float((centres - centres.mean(dim=0)).norm(dim=-1).max()))
         if self.strategy is not None:
             self.strategy.scene_scale = float(self.scene_scale)
+            train = datamodule.scene.train
+            self.strategy.cameras = (train.K, train.c2w, train.height, train.width)
         if len(self.gaussians) == 0 and not getattr(self.trainer, "ckpt_path", None):  # a resumed run's come from its checkpoint
             self.start_gaussians(datamodule.scene, getattr(datamodule, "mask_mode", None))
         self.check_memory(self.trainer.strategy.root_device)

@@ -118,6 +118,25 @@ def project(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, 
                       *(value.index_select(0, keep) for value in (alpha, z, extents)))
 
 
+def views_seeing(means: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
+                 chunk: int = 8) -> torch.Tensor:
+    """How many of V cameras see each point: means (N, 3), K (V, 3, 3), c2w (V, 4, 4) OpenCV -> (N,) long, the views
+    in whose image (height x width) a point falls in front of the near plane. The points alone, not their footprints:
+    cheap enough to ask of every Gaussian for every training view at each refinement (``chunk`` views at a time)."""
+    counts = torch.zeros(len(means), dtype=torch.long, device=means.device)
+    w2c = torch.linalg.inv(c2w.to(means))
+    K = K.to(means)
+    for start in range(0, len(w2c), chunk):
+        rotation, translation, intrinsics = w2c[start:start + chunk, :3, :3], w2c[start:start + chunk, :3, 3], K[start:start + chunk]
+        points = torch.einsum("vij,nj->vni", rotation, means) + translation[:, None]  # (v, N, 3) in each camera
+        z = points[..., 2]
+        safe = z.clamp(min=NEAR_PLANE)
+        u = intrinsics[:, None, 0, 0] * points[..., 0] / safe + intrinsics[:, None, 0, 2]
+        v = intrinsics[:, None, 1, 1] * points[..., 1] / safe + intrinsics[:, None, 1, 2]
+        counts += ((z > NEAR_PLANE) & (u >= 0) & (u < width) & (v >= 0) & (v < height)).sum(dim=0)
+    return counts
+
+
 def pixel_ray_lengths(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(H, W): how far along a pixel's ray (a unit direction) the plane z = 1 lies, |K^-1 [u, v, 1]|, so that a
     camera z times it is the distance the project's rays measure depth in (:func:`~nerf_lightning.geometry.cameras.pixel_to_ray`)."""

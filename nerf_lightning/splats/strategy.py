@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
-from nerf_lightning.splats.projection import Projection, covariances, inverse_sigmoid
+from nerf_lightning.splats.projection import Projection, covariances, inverse_sigmoid, views_seeing
 
 log = logging.getLogger(__name__)
 
@@ -52,18 +52,30 @@ class DefaultStrategy:
     cut to twice ``prune_opacity`` (their optimiser state zeroed), so that Gaussians the views do not need fade and
     are pruned. ``max_count`` caps the Gaussians: growth that would pass it is dropped, the largest gradients kept.
 
+    With ``prune_near_cameras`` (a fraction of the scene scale), each refinement also prunes the Gaussians within
+    that distance of a training camera's centre whose centre fewer than ``near_cameras_min_views`` training views
+    see. Such a Gaussian fills the near field of a camera or two: the views that see it can explain it as anything,
+    so nothing holds it to the scene, and a view between them (a held-out one) finds a blob or a needle across it.
+    Photos walked round a subject have the cameras close to one another and leave many of these; a synthetic
+    capture's far cameras leave none.
+
     Args:
         scene_scale: the scene's size, set by the model from its training cameras (gsplat: 1.1 x their extent).
+        cameras: the training views' (K (V, 3, 3), c2w (V, 4, 4), height, width), set by the model likewise; needed
+            only by ``prune_near_cameras``.
     """
 
     def __init__(self, refine_start: int = 500, refine_stop: int = 15_000, refine_every: int = 100, reset_every: int = 3000,
                  grow_grad2d: float = 2e-4, grow_scale3d: float = 0.01, prune_opacity: float = 0.005, prune_scale3d: float = 0.1,
-                 max_count: int = 1_000_000, prune_large_after: int | None = None, seed: int = 0) -> None:
+                 max_count: int = 1_000_000, prune_large_after: int | None = None, prune_near_cameras: float | None = None,
+                 near_cameras_min_views: int = 5, seed: int = 0) -> None:
         self.refine_start, self.refine_stop, self.refine_every, self.reset_every = refine_start, refine_stop, refine_every, reset_every
         self.grow_grad2d, self.grow_scale3d = grow_grad2d, grow_scale3d
         self.prune_opacity, self.prune_scale3d, self.max_count = prune_opacity, prune_scale3d, max_count
         self.prune_large_after = reset_every if prune_large_after is None else prune_large_after
+        self.prune_near_cameras, self.near_cameras_min_views = prune_near_cameras, near_cameras_min_views
         self.scene_scale = 1.0
+        self.cameras: tuple[torch.Tensor, torch.Tensor, int, int] | None = None
         self.generator = torch.Generator().manual_seed(seed)
         self.grad_sum: torch.Tensor | None = None  # (N,) the sum of each Gaussian's screen gradient norms
         self.seen: torch.Tensor | None = None  # (N,) how many views saw it
@@ -119,10 +131,23 @@ class DefaultStrategy:
         prune = torch.sigmoid(merged["opacity_logits"]) < self.prune_opacity
         if step > self.prune_large_after:
             prune |= torch.exp(merged["log_scales"]).amax(dim=-1) > self.prune_scale3d * self.scene_scale
+        if self.prune_near_cameras is not None:
+            prune |= self.near_few_cameras(merged["means"])
         kept = torch.nonzero(~prune).squeeze(1)
         gaussians.edit({name: value[kept] for name, value in merged.items()}, rows_from[kept], replace)
         log.debug("step %d: %d cloned, %d split, %d pruned: %d Gaussians", step, len(cloned), len(halves), int(prune.sum()), len(kept))
         self.grad_sum = self.seen = None
+
+    def near_few_cameras(self, means: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the means within ``prune_near_cameras`` of the scene scale from a training camera's centre that
+        fewer than ``near_cameras_min_views`` training views see (the class docstring)."""
+        if self.cameras is None:
+            raise ValueError("model.strategy.prune_near_cameras needs the training cameras, which the splat model gives "
+                             "the strategy when training starts")
+        K, c2w, height, width = self.cameras
+        centres = c2w[:, :3, 3].to(means)
+        near = torch.cdist(means, centres).amin(dim=-1) < self.prune_near_cameras * self.scene_scale
+        return near & (views_seeing(means, K, c2w, height, width) < self.near_cameras_min_views)
 
     def loss(self, gaussians: Gaussians) -> torch.Tensor | None:
         """No regulariser."""

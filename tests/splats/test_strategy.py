@@ -12,7 +12,7 @@ import torch
 
 from nerf_lightning.parameters.groups import replace_parameter
 from nerf_lightning.splats.gaussians import PARAMETERS
-from nerf_lightning.splats.projection import Projection
+from nerf_lightning.splats.projection import Projection, views_seeing
 from nerf_lightning.splats.strategy import DefaultStrategy, MCMCStrategy, relocation
 from nerf_lightning.training import train
 from tests.models.test_splat import QUICK, gaussians_for
@@ -184,3 +184,56 @@ def test_large_gaussians_are_pruned_only_after_prune_large_after_or_the_first_re
     strategy.after_step(g, step=step, replace=replace, means_lr=0.0)
     assert len(g) == (90 if pruned else 100)
     assert float(torch.exp(g.log_scales.detach()).amax()) == pytest.approx(0.01 if pruned else 0.5, rel=1e-2)
+
+
+def ring_of_cameras(count: int = 12, radius: float = 2.0):
+    """``count`` 64x64 cameras (focal 64) on a circle in the xy plane, each looking at the origin (OpenCV axes)."""
+    c2ws = []
+    for angle in torch.arange(count) * (2 * math.pi / count):
+        centre = torch.tensor([radius * math.cos(angle), radius * math.sin(angle), 0.0])
+        forward = -centre / centre.norm()
+        down = torch.tensor([0.0, 0.0, -1.0])
+        right = torch.linalg.cross(down, forward)
+        c2w = torch.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, down, forward, centre
+        c2ws.append(c2w)
+    K = torch.tensor([[64.0, 0.0, 32.0], [0.0, 64.0, 32.0], [0.0, 0.0, 1.0]]).expand(count, 3, 3)
+    return K, torch.stack(c2ws)
+
+
+def test_views_seeing_counts_the_cameras_a_point_falls_in_front_of_and_inside():
+    K, c2w = ring_of_cameras()
+    centre0 = c2w[0, :3, 3]
+    points = torch.stack([torch.zeros(3), 0.9 * centre0, 1.5 * centre0, torch.tensor([0.0, 0.0, 5.0])])
+    counts = views_seeing(points, K, c2w, 64, 64)
+    # the origin: every camera; just in front of camera 0: camera 0 and the three across the ring that face it (off
+    # the images of the others); behind camera 0: not camera 0; far above the ring: off every image
+    assert counts[0] == 12 and counts[1] == 4 and counts[3] == 0
+    assert views_seeing(points[2:3], K[:1], c2w[:1], 64, 64) == 0 and views_seeing(points[1:2], K[:1], c2w[:1], 64, 64) == 1
+
+
+@pytest.mark.parametrize("prune_near_cameras", [None, 0.6])
+def test_gaussians_near_a_camera_that_few_views_see_are_pruned(prune_near_cameras):
+    K, c2w = ring_of_cameras()
+    centre0 = c2w[0, :3, 3]
+    g = gaussians_for(3)
+    with torch.no_grad():
+        # the subject at the origin; a floater just in front of camera 0; one far out behind the subject, which few
+        # views see but no camera is near
+        g.means[:] = torch.stack([torch.zeros(3), 0.85 * centre0, torch.tensor([0.0, 0.0, 0.3]) - 2.5 * centre0])
+        g.log_scales[:] = math.log(0.01)
+        g.opacity_logits[:] = 2.0
+    optimizer, replace = stepped_optimizer(g)
+    strategy = DefaultStrategy(refine_start=0, refine_every=100, prune_near_cameras=prune_near_cameras)
+    strategy.scene_scale = 1.1 * 2.0
+    strategy.cameras = (K, c2w, 64, 64)
+    assert int(views_seeing(g.means.detach()[2:], K, c2w, 64, 64)) < 5  # few see the far one too
+    means2d = torch.zeros(3, 2, requires_grad=True)
+    means2d.grad = torch.zeros(3, 2)  # nothing grows
+    strategy.after_backward(g, Projection(torch.arange(3), means2d, torch.zeros(3, 3), torch.zeros(3), torch.zeros(3),
+                                          torch.zeros(3, 2)), width=64, height=64)
+    strategy.after_step(g, step=100, replace=replace, means_lr=0.0)
+    expected = [0, 2] if prune_near_cameras else [0, 1, 2]
+    assert len(g) == len(expected)
+    kept = torch.stack([torch.zeros(3), 0.85 * centre0, torch.tensor([0.0, 0.0, 0.3]) - 2.5 * centre0])[expected]
+    assert torch.allclose(g.means.detach(), kept, atol=1e-2)  # (the optimiser stepped once before)

@@ -56,8 +56,7 @@ class DefaultStrategy:
     that distance of a training camera's centre whose centre fewer than ``near_cameras_min_views`` training views
     see. Such a Gaussian fills the near field of a camera or two: the views that see it can explain it as anything,
     so nothing holds it to the scene, and a view between them (a held-out one) finds a blob or a needle across it.
-    Photos walked round a subject have the cameras close to one another and leave many of these; a synthetic
-    capture's far cameras leave none.
+    Photos walked round a subject have the cameras close to one another and leave many of these.
 
     Args:
         scene_scale: the scene's size, set by the model from its training cameras (gsplat: 1.1 x their extent).

@@ -11,7 +11,7 @@
 #   fast:     fast_blender_gpu, lego 800x800 (compiled)              -> OUT/fast.json
 #   cape:     nerfacto_360_gpu, moldGoldCape masked, downscale 4     -> OUT/cape.json
 #   (syncs: issue 47's CountHostSyncs over plain fast_blender_gpu steps, when named)
-# then OUT/summary.txt. OUT gets at most 8 files: log.txt (everything), summary.txt, junit_device.xml (the test files that touch a
+# then OUT/summary.txt. OUT gets (8 files at most come back; syncs adds a ninth, so name it with fewer rows): log.txt (everything), summary.txt, junit_device.xml (the test files that touch a
 # GPU, run first), junit.xml (the rest) and the rows' JSON.
 #   GPU_CHECK_STEPS="tests splat splatfox fast cape"  the steps to run
 #   GPU_CHECK_DEADLINE=565  seconds from the start by which everything has ended (the run tool's limit is 600)

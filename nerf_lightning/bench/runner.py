@@ -221,7 +221,9 @@ def main(argv: list[str] | None = None) -> None:
     run.add_argument("--resume", action="store_true", help="skip rows already measured on this machine")
     run.add_argument("--data-dir", type=Path, default=None, help=f"where the rows' data lie (default: ${DATA_DIR_VARIABLE}, else {DEFAULT_DATA_DIR})")
     run.add_argument("--results", type=Path, default=DEFAULT_RESULTS, help="folder of the suites' results JSONs")
-    run.add_argument("--report", type=Path, default=DEFAULT_REPORT, help="the results table regenerated after each row")
+    run.add_argument("--report", type=Path, default=None,
+                     help=f"the results table regenerated after each row (default: {DEFAULT_REPORT} where --results is {DEFAULT_RESULTS}, "
+                          "else <results>.md beside that folder)")
     run.add_argument("--work", type=Path, default=DEFAULT_WORK, help="where the runs (checkpoints, logs, renders) go")
     run.add_argument("--readme", type=Path, default=None,
                      help=f"whose results table (between its marker lines) is regenerated too (default: {DEFAULT_README} where --results is "
@@ -229,13 +231,19 @@ def main(argv: list[str] | None = None) -> None:
     run.add_argument("--allow-dirty", action="store_true", help="measure a checkout with uncommitted changes (the rows say +dirty)")
     report = commands.add_parser("report", help="regenerate the results table and plots from the results JSONs")
     report.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
-    report.add_argument("--report", type=Path, default=DEFAULT_REPORT)
+    report.add_argument("--report", type=Path, default=None, help="as for run")
     report.add_argument("--readme", type=Path, default=None, help="as for run")
     listing = commands.add_parser("list", help="the suites and their rows")
     listing.add_argument("suite", nargs="?")
     args = parser.parse_args(argv)
-    if args.command in ("run", "report") and args.readme is None and args.results == DEFAULT_RESULTS:
-        args.readme = DEFAULT_README
+    if args.command in ("run", "report"):
+        # the project's own results write its page and README; any other folder (a smoke run's, a GPU lease's) writes
+        # its page beside itself and no README, unless named
+        own = args.results.resolve() == DEFAULT_RESULTS.resolve()
+        if args.report is None:
+            args.report = DEFAULT_REPORT if own else args.results.with_suffix(".md")
+        if args.readme is None and own:
+            args.readme = DEFAULT_README
 
     try:
         if args.command == "list":

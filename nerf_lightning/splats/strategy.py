@@ -56,7 +56,8 @@ class DefaultStrategy:
     that distance of a training camera's centre whose centre fewer than ``near_cameras_min_views`` training views
     see. Such a Gaussian fills the near field of a camera or two: the views that see it can explain it as anything,
     so nothing holds it to the scene, and a view between them (a held-out one) finds a blob or a needle across it.
-    Photos walked round a subject have the cameras close to one another and leave many of these.
+    Photos walked round a subject have the cameras close to one another and leave many of these. The cameras are
+    the loaded ones, also where camera refinement corrects them in training.
 
     Args:
         scene_scale: the scene's size, set by the model from its training cameras (gsplat: 1.1 x their extent).
@@ -130,11 +131,12 @@ class DefaultStrategy:
         prune = torch.sigmoid(merged["opacity_logits"]) < self.prune_opacity
         if step > self.prune_large_after:
             prune |= torch.exp(merged["log_scales"]).amax(dim=-1) > self.prune_scale3d * self.scene_scale
-        if self.prune_near_cameras is not None:
-            prune |= self.near_few_cameras(merged["means"])
+        near = self.near_few_cameras(merged["means"]) if self.prune_near_cameras is not None else torch.zeros_like(prune)
+        prune |= near
         kept = torch.nonzero(~prune).squeeze(1)
         gaussians.edit({name: value[kept] for name, value in merged.items()}, rows_from[kept], replace)
-        log.debug("step %d: %d cloned, %d split, %d pruned: %d Gaussians", step, len(cloned), len(halves), int(prune.sum()), len(kept))
+        log.debug("step %d: %d cloned, %d split, %d pruned (%d near the cameras): %d Gaussians", step, len(cloned), len(halves),
+                  int(prune.sum()), int(near.sum()), len(kept))
         self.grad_sum = self.seen = None
 
     def near_few_cameras(self, means: torch.Tensor) -> torch.Tensor:
@@ -146,7 +148,9 @@ class DefaultStrategy:
         K, c2w, height, width = self.cameras
         centres = c2w[:, :3, 3].to(means)
         near = torch.cdist(means, centres).amin(dim=-1) < self.prune_near_cameras * self.scene_scale
-        return near & (views_seeing(means, K, c2w, height, width) < self.near_cameras_min_views)
+        rows = torch.nonzero(near).squeeze(1)  # only the near ones need their views counted
+        few = views_seeing(means[rows], K, c2w, height, width) < self.near_cameras_min_views
+        return torch.zeros_like(near).index_fill_(0, rows[few], True)
 
     def loss(self, gaussians: Gaussians) -> torch.Tensor | None:
         """No regulariser."""

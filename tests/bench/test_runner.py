@@ -87,6 +87,27 @@ def test_rows_kept_outside_docs_results_leave_the_readmes_table_alone(quick_row,
     assert bench("report", "--results", str(results), "--report", str(tmp_path / "results.md"), "--readme", "README.md",
                  cwd=tmp_path).returncode == 0
     assert "by hand" not in readme.read_text()
+    # without --report, another folder's page goes beside it, not into docs/results.md
+    assert bench("report", "--results", str(results), cwd=tmp_path).returncode == 0
+    assert results.with_suffix(".md").is_file() and not (tmp_path / "docs").exists()
+
+
+def test_the_projects_own_results_write_its_page_and_readme_by_default(quick_row, tmp_path):
+    """nerf-bench report with no arguments, in a checkout: docs/results/*.json -> docs/results.md and the README's
+    table (given as ./docs/results too, the same folder)."""
+    import shutil
+
+    folder, _ = quick_row
+    shutil.copytree(folder / "results", tmp_path / "docs" / "results")
+    readme = tmp_path / "README.md"
+    readme.write_text("# A project\n\n<!-- results table: nerf-bench report writes it -->\nby hand\n<!-- end of the results table -->\n")
+    assert bench("report", cwd=tmp_path).returncode == 0
+    assert "## procedural" in (tmp_path / "docs" / "results.md").read_text()
+    # the README's table holds the cpu suite's rows (none here): regenerated, the hand-written line gone
+    assert "by hand" not in readme.read_text()
+    readme.write_text(readme.read_text().replace("| scene | preset |", "by hand\n| scene | preset |"))
+    assert bench("report", "--results", "./docs/results", cwd=tmp_path).returncode == 0
+    assert "by hand" not in readme.read_text()
 
 
 def test_the_readmes_table_is_regenerated_between_its_marker_lines(quick_row):

@@ -179,6 +179,13 @@ def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(proc
     torch.testing.assert_close(0.5 + SH_C0 * model.gaussians.sh0.detach()[:, 0], scene.points.colours.float() / 255.0, atol=1e-6, rtol=0)
     metrics = train(cfg)
     assert metrics["step"] == 3 and metrics["train/gaussians"] == 300
+    # refining from the first step: the preset's near-camera pruning asks the training cameras, which the model
+    # gives the strategy when training starts (without them the first refinement would stop with an error)
+    refined = make_config("experiment=splat_360_cpu", f"data.root={root}", "data.scene.downscale=1", "trainer.max_steps=3",
+                          "data.val_every=null", "trainer.enable_progress_bar=false", "model.strategy.refine_start=1",
+                          "model.strategy.refine_every=1", f"paths.output_dir={tmp_path / 'refined'}")
+    assert refined.model.strategy.prune_near_cameras == 0.6
+    assert train(refined)["step"] == 3
 
 
 

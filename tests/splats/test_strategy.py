@@ -237,3 +237,15 @@ def test_gaussians_near_a_camera_that_few_views_see_are_pruned(prune_near_camera
     assert len(g) == len(expected)
     kept = torch.stack([torch.zeros(3), 0.85 * centre0, torch.tensor([0.0, 0.0, 0.3]) - 2.5 * centre0])[expected]
     assert torch.allclose(g.means.detach(), kept, atol=1e-2)  # (the optimiser stepped once before)
+
+
+def test_pruning_near_cameras_without_the_cameras_is_one_clear_error():
+    g = gaussians_for(3)
+    optimizer, replace = stepped_optimizer(g)
+    strategy = DefaultStrategy(refine_start=0, refine_every=100, prune_near_cameras=0.6)
+    means2d = torch.zeros(3, 2, requires_grad=True)
+    means2d.grad = torch.zeros(3, 2)
+    strategy.after_backward(g, Projection(torch.arange(3), means2d, torch.zeros(3, 3), torch.zeros(3), torch.zeros(3),
+                                          torch.zeros(3, 2)), width=64, height=64)
+    with pytest.raises(ValueError, match="prune_near_cameras needs the training cameras"):
+        strategy.after_step(g, step=100, replace=replace, means_lr=0.0)

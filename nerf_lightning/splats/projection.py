@@ -118,22 +118,27 @@ def project(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, 
                       *(value.index_select(0, keep) for value in (alpha, z, extents)))
 
 
+def frame_positions(points: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
+                    near: float = NEAR_PLANE) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Where N points fall in V cameras: points (N, 3), K (V, 3, 3), c2w (V, 4, 4) OpenCV -> column (V, N) and row
+    (V, N) in pixels, and in_frame (V, N) bool: in front of ``near`` and inside the image (height x width)."""
+    w2c = torch.linalg.inv(c2w)
+    local = points @ w2c[:, :3, :3].transpose(-1, -2) + w2c[:, None, :3, 3]  # (V, N, 3) in each camera
+    z = local[..., 2]
+    column = K[:, None, 0, 0] * local[..., 0] / z.clamp(min=near) + K[:, None, 0, 2]
+    row = K[:, None, 1, 1] * local[..., 1] / z.clamp(min=near) + K[:, None, 1, 2]
+    return column, row, (z > near) & (column >= 0) & (column < width) & (row >= 0) & (row < height)
+
+
 def views_seeing(means: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
                  chunk: int = 8) -> torch.Tensor:
     """How many of V cameras see each point: means (N, 3), K (V, 3, 3), c2w (V, 4, 4) OpenCV -> (N,) long, the views
     in whose image (height x width) a point falls in front of the near plane. The points alone, not their footprints:
     cheap enough to ask of every Gaussian for every training view at each refinement (``chunk`` views at a time)."""
     counts = torch.zeros(len(means), dtype=torch.long, device=means.device)
-    w2c = torch.linalg.inv(c2w.to(means))
-    K = K.to(means)
-    for start in range(0, len(w2c), chunk):
-        rotation, translation, intrinsics = w2c[start:start + chunk, :3, :3], w2c[start:start + chunk, :3, 3], K[start:start + chunk]
-        points = torch.einsum("vij,nj->vni", rotation, means) + translation[:, None]  # (v, N, 3) in each camera
-        z = points[..., 2]
-        safe = z.clamp(min=NEAR_PLANE)
-        u = intrinsics[:, None, 0, 0] * points[..., 0] / safe + intrinsics[:, None, 0, 2]
-        v = intrinsics[:, None, 1, 1] * points[..., 1] / safe + intrinsics[:, None, 1, 2]
-        counts += ((z > NEAR_PLANE) & (u >= 0) & (u < width) & (v >= 0) & (v < height)).sum(dim=0)
+    c2w, K = c2w.to(means), K.to(means)
+    for start in range(0, len(c2w), chunk):
+        counts += frame_positions(means, K[start:start + chunk], c2w[start:start + chunk], height, width)[2].sum(dim=0)
     return counts
 
 

@@ -17,6 +17,7 @@ import torch
 
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.scene import Views
+from nerf_lightning.splats.projection import frame_positions
 
 
 def points_seen_by_views(views: Views, near: float, far: float, count: int,
@@ -71,12 +72,8 @@ def points_in_visual_hull(views: Views, near: float, far: float, count: int, gen
     inside = torch.zeros(len(drawn))
     seen = torch.zeros(len(drawn))
     for other in range(len(views)):  # project every candidate into each view: in frame? inside the mask?
-        w2c = torch.linalg.inv(c2w[other])
-        points = positions @ w2c[:3, :3].T + w2c[:3, 3]
-        z = points[:, 2]
-        column = K[other, 0, 0] * points[:, 0] / z.clamp(min=1e-6) + K[other, 0, 2]
-        row = K[other, 1, 1] * points[:, 1] / z.clamp(min=1e-6) + K[other, 1, 2]
-        in_frame = (z > 1e-6) & (column >= 0) & (column < views.width) & (row >= 0) & (row < views.height)
+        [column], [row], [in_frame] = frame_positions(positions, K[other:other + 1], c2w[other:other + 1], views.height,
+                                                      views.width, near=1e-6)
         index = row.long().clamp(0, views.height - 1) * views.width + column.long().clamp(0, views.width - 1)
         seen += in_frame.float()
         inside += (in_frame & masks[other][index]).float()

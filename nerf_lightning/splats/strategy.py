@@ -47,8 +47,8 @@ class DefaultStrategy:
     Every ``refine_every`` steps from ``refine_start`` until ``refine_stop``: a Gaussian whose mean screen-space
     gradient (in units of half the image, averaged over the views that saw it) exceeds ``grow_grad2d`` grows, by a
     clone where its largest scale is at most ``grow_scale3d`` of the scene scale, else by a split into two drawn from
-    it with scales / 1.6; then Gaussians under ``prune_opacity`` go, and after ``reset_every`` steps those larger than
-    ``prune_scale3d`` of the scene scale too. Every ``reset_every`` steps (until ``refine_stop``) the opacities are
+    it with scales / 1.6; then Gaussians under ``prune_opacity`` go, and after ``prune_large_after`` steps (unset: the
+    first reset) those larger than ``prune_scale3d`` of the scene scale too. Every ``reset_every`` steps (until ``refine_stop``) the opacities are
     cut to twice ``prune_opacity`` (their optimiser state zeroed), so that Gaussians the views do not need fade and
     are pruned. ``max_count`` caps the Gaussians: growth that would pass it is dropped, the largest gradients kept.
 

@@ -16,8 +16,10 @@ import torch
 from torch.profiler import record_function
 
 from nerf_lightning.data.batches import ViewBatch
+from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
+from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr, ssim_map
@@ -33,6 +35,9 @@ from nerf_lightning.splats.start import points_in_visual_hull, points_seen_by_vi
 from nerf_lightning.splats.strategy import Strategy
 
 log = logging.getLogger(__name__)
+
+# fewer triangulated points than this start no Gaussians: a capture whose views barely match, for the random start
+MIN_TRIANGULATED = 100
 
 
 class SplatModule(SceneModule):
@@ -65,6 +70,10 @@ class SplatModule(SceneModule):
         max_pairs: (Gaussian, pixel) pairs drawn at once by the ``pairs`` rasteriser
             (:mod:`~nerf_lightning.splats.rasterize`): the memory a view takes, about 100 bytes a pair with gradients.
         random_count, random_start, random_near, random_extent: the random start of a capture without sparse points.
+        triangulate: a capture without sparse points gets them from its training views and their poses
+            (:func:`~nerf_lightning.capture.triangulate.triangulate_views`: COLMAP's point triangulator through pycolmap,
+            the colmap extra; inside the masks where the views have them), and the Gaussians start there; where
+            pycolmap is missing or fewer than :data:`MIN_TRIANGULATED` points come back, one warning and the random start.
         appearance: a learnt colour transform for each training view
             (:class:`~nerf_lightning.splats.appearance.ViewColourAffine`: the Gaussians' colours in a training view's
             render, not the background, through its affine map before the loss; its own learning rate, its penalty
@@ -81,7 +90,7 @@ class SplatModule(SceneModule):
                  strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
                  rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
-                 random_extent: float = 1.3, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
+                 random_extent: float = 1.3, triangulate: bool = False, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
         super().__init__(optimizer, scheduler)
         self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
@@ -96,6 +105,7 @@ class SplatModule(SceneModule):
         if random_start not in ("box", "views"):
             raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")
         self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
+        self.triangulate = triangulate
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
         self.view_size: tuple[int, int] | None = None  # a whole training view's height and width (set by setup)
@@ -151,6 +161,10 @@ class SplatModule(SceneModule):
             log.info("Gaussians start from the capture's %d sparse points", len(points))
             self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
             return
+        points = self.triangulated_points(scene.train) if self.triangulate else None
+        if points is not None:
+            self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
+            return
         near = float(scene.near) if self.random_near is None else self.random_near
         far = min(float(scene.far), self.random_extent)
         if self.random_start == "views" and mask_mode == "background" and scene.train.masks is not None:
@@ -167,6 +181,26 @@ class SplatModule(SceneModule):
             positions = (torch.rand(self.random_count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
             colours = torch.rand(self.random_count, 3, generator=generator)
         self.gaussians.initialise(positions, colours, generator)
+
+    @staticmethod
+    def triangulated_points(views: Any) -> SparsePoints | None:
+        """The sparse points triangulated from the training ``views`` and their poses; None, after one warning saying
+        why, where pycolmap is missing or too few points come back (the random start follows)."""
+        try:
+            from nerf_lightning.capture.triangulate import triangulate_views
+
+            points, report = triangulate_views(views)
+        except MissingExtraError as error:
+            log.warning("model.triangulate: %s; the Gaussians start at random instead", error)
+            return None
+        if len(points) < MIN_TRIANGULATED:
+            log.warning("model.triangulate: only %d points triangulated from the %d training views (%s); the Gaussians start at "
+                        "random instead", len(points), len(views), report["matches"])
+            return None
+        log.info("the capture has no sparse points: %d triangulated from its %d training views and their poses (%s), reprojected "
+                 "within %.2f px on average; the Gaussians start there", len(points), len(views),
+                 ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items()), report["mean_reprojection_error_px"])
+        return points
 
     def parameter_groups(self) -> list[dict[str, Any]]:
         """One group a parameter at its own learning rate; the means' scaled by the scene and decaying exponentially."""

@@ -1,0 +1,137 @@
+"""Sparse points of a capture that has poses but no points (an instant-ngp ``transforms.json``, an LLFF
+``poses_bounds.npy``): COLMAP's point triangulator run on the training views with their poses held fixed, through
+``pycolmap`` (the ``colmap`` extra).
+
+3DGS and gsplat start the Gaussians from the sparse points COLMAP's mapper left; captures published with poses
+alone have lost them. The poses are known, so nothing is mapped: SIFT features of every training view (inside its
+mask where the views have masks, so that the points lie on the object), matches verified by two-view geometry
+between views that look at the same part of the scene (every pair of a small capture; each view with its nearest
+others, by position and viewing direction, of a larger one), then each verified track triangulated from the fixed
+cameras and kept where it reprojects within COLMAP's bounds. The points come out in the views' own world.
+
+The views are triangulated as they are loaded (undistorted, downscaled): the points are where the Gaussians are
+fitted to.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+
+from nerf_lightning.capture.colmap import (colmap_log, database_statistics, exhaustive_pairs, extract_features, import_pycolmap,
+                                           match_features, model_statistics, sparse_points)
+from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.points import SparsePoints
+from nerf_lightning.data.scene import Views
+
+# a capture of at most this many views matches every pair; a larger one each view with its nearest NEIGHBOURS
+EXHAUSTIVE_UP_TO = 40
+NEIGHBOURS = 20
+
+
+def pose_pairs(c2w: torch.Tensor, neighbours: int = NEIGHBOURS, chunk: int = 100) -> list[list[tuple[int, int]]]:
+    """(N, 4, 4) OpenCV camera-to-world -> pairs (i, j), i < j, of views likely to see the same points, in chunks of
+    ``chunk``: each view with the ``neighbours`` others nearest by the distance of their centres (over the cameras'
+    mean distance from their centroid) plus one minus the cosine between their viewing directions; views looking away
+    from each other (more than 90 degrees) are never paired."""
+    count = len(c2w)
+    centres, forward = c2w[:, :3, 3].double(), c2w[:, :3, 2].double()
+    spread = (centres - centres.mean(dim=0)).norm(dim=-1).mean().clamp_min(1e-12)
+    cosine = forward @ forward.T
+    distance = torch.cdist(centres, centres) / spread + (1.0 - cosine)
+    distance[cosine <= 0.0] = torch.inf
+    distance.fill_diagonal_(torch.inf)
+    nearest = distance.topk(min(neighbours, count - 1), dim=1, largest=False)
+    pairs = sorted({(min(i, j), max(i, j)) for i in range(count) for j, gap in zip(nearest.indices[i].tolist(), nearest.values[i].tolist())
+                    if gap < torch.inf})
+    return [pairs[start : start + chunk] for start in range(0, len(pairs), chunk)]
+
+
+def write_views(views: Views, folder: Path, masks: bool) -> list[str]:
+    """Each view's image as ``folder/images/<index>.png`` and, with ``masks``, COLMAP's mask of it (255 on the
+    object) as ``folder/masks/<index>.png.png`` -> the image names."""
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    if masks:
+        (folder / "masks").mkdir(parents=True, exist_ok=True)
+    names = []
+    for index in range(len(views)):
+        name = f"{index:05d}.png"
+        rgb = views.images[index]
+        rgb = rgb.numpy() if rgb.dtype == torch.uint8 else (as_float_rgb(rgb).clamp(0, 1) * 255).round().byte().numpy()
+        Image.fromarray(np.ascontiguousarray(rgb)).save(folder / "images" / name)
+        if masks:
+            Image.fromarray(views.masks[index].numpy().astype(np.uint8) * 255).save(folder / "masks" / f"{name}.png")
+        names.append(name)
+    return names
+
+
+def posed_model(database: Path, views: Views, names: list[str]) -> Any:
+    """A ``pycolmap.Reconstruction`` of the views' known cameras and poses, under the ids the database gave their
+    images; the database's cameras are set to the views' pinhole intrinsics (the triangulator reads both)."""
+    pycolmap = import_pycolmap()
+    model = pycolmap.Reconstruction()
+    with contextlib.closing(pycolmap.Database.open(database)) as opened:
+        by_name = {image.name: image for image in opened.read_all_images()}
+        for index, name in enumerate(names):
+            image = by_name[name]
+            K = views.K[index].double()
+            camera = pycolmap.Camera(model="PINHOLE", width=views.width, height=views.height, camera_id=image.camera_id,
+                                     params=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])])
+            opened.update_camera(camera)
+            model.add_camera_with_trivial_rig(camera)
+            w2c = torch.linalg.inv(views.c2w[index].double()).numpy()
+            model.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=image.camera_id, image_id=image.image_id),
+                                               pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3]))
+    return model
+
+
+def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8192, neighbours: int = NEIGHBOURS, seed: int = 0,
+                      progress: bool = False, verbose: bool = False) -> tuple[SparsePoints, dict[str, Any]]:
+    """Sparse points of the scene the posed ``views`` see (their images and poses; see the module's docstring) ->
+    the points in the views' world with their colours, and what each stage took and left: ``seconds`` (features,
+    matching, triangulation), ``matches`` (:func:`~nerf_lightning.capture.colmap.database_statistics`) and the
+    model's statistics (:func:`~nerf_lightning.capture.colmap.model_statistics`).
+
+    Args:
+        masks: keep each view's features inside its mask, where the views have masks.
+        max_features: SIFT features kept a view.
+        neighbours: the views each view is matched with beyond :data:`EXHAUSTIVE_UP_TO` views (:func:`pose_pairs`).
+        seed: the seed of the matches' RANSAC.
+    """
+    if views.images is None:
+        raise ValueError("triangulating sparse points needs the views' images")
+    if len(views) < 2:
+        raise ValueError(f"triangulating sparse points needs at least 2 posed views, got {len(views)}")
+    pycolmap = import_pycolmap()
+    masks = masks and views.masks is not None
+    seconds = {}
+    with tempfile.TemporaryDirectory(prefix="nerf-triangulate-") as scratch, colmap_log(verbose):
+        folder = Path(scratch)
+        database = folder / "database.db"
+        started = time.perf_counter()
+        names = write_views(views, folder, masks)
+        extract_features(database, folder / "images", names, "PINHOLE", single_camera=False, max_size=max(views.height, views.width),
+                         max_features=max_features, progress=progress, masks=folder / "masks" if masks else None)
+        seconds["features"] = time.perf_counter() - started
+
+        started = time.perf_counter()
+        pairs = exhaustive_pairs(len(views)) if len(views) <= EXHAUSTIVE_UP_TO else pose_pairs(views.c2w, neighbours)
+        match_features(database, names, pairs, folder / "pairs", seed, progress)
+        seconds["matching"] = time.perf_counter() - started
+        matches = database_statistics(database)
+
+        started = time.perf_counter()
+        model = pycolmap.triangulate_points(posed_model(database, views, names), database, folder / "images", folder / "sparse",
+                                            options=pycolmap.IncrementalPipelineOptions())
+        seconds["triangulation"] = time.perf_counter() - started
+        positions, colours = sparse_points(model)
+        statistics = model_statistics(model)
+    report = {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, **statistics}
+    return SparsePoints.mapped(positions, colours), report

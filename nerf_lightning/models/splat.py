@@ -70,6 +70,9 @@ class SplatModule(SceneModule):
         max_pairs: (Gaussian, pixel) pairs drawn at once by the ``pairs`` rasteriser
             (:mod:`~nerf_lightning.splats.rasterize`): the memory a view takes, about 100 bytes a pair with gradients.
         random_count, random_start, random_near, random_extent: the random start of a capture without sparse points.
+        random_scale: the random start's Gaussians' scale, a multiple of their 3 nearest neighbours' mean distance
+            (None: ``gaussians.initial_scale``, which sparse points start at): a random cloud is denser than its
+            detail, and below 1 it covers each pixel with fewer Gaussians while densification has not yet shaped them.
         triangulate: a capture without sparse points gets them from its training views and their poses
             (:func:`~nerf_lightning.capture.triangulate.triangulate_views`: COLMAP's point triangulator through pycolmap,
             the colmap extra; inside the masks where the views have them), and the Gaussians start there; where
@@ -90,7 +93,7 @@ class SplatModule(SceneModule):
                  strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
                  rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
-                 random_extent: float = 1.3, triangulate: bool = False, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
+                 random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
         super().__init__(optimizer, scheduler)
         self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
@@ -105,7 +108,9 @@ class SplatModule(SceneModule):
         if random_start not in ("box", "views"):
             raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")
         self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
-        self.triangulate = triangulate
+        if random_scale is not None and random_scale <= 0:
+            raise ValueError(f"model.random_scale must be > 0 (or null), got {random_scale}")
+        self.random_scale, self.triangulate = random_scale, triangulate
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
         self.view_size: tuple[int, int] | None = None  # a whole training view's height and width (set by setup)
@@ -153,15 +158,15 @@ class SplatModule(SceneModule):
         self.space = space.to(self.device)
 
     def start_gaussians(self, scene: Any, mask_mode: str | None = None) -> None:
-        """The Gaussians' start: the capture's sparse points where it has them; else, with ``random_start=views``, on
-        training pixels' rays (with ``data.masks=background``, inside the masks' visual hull); else in a random box."""
+        """The Gaussians' start: the capture's sparse points where it has them, else (``triangulate``) those
+        triangulated from its training views; else, with ``random_start=views``, on training pixels' rays (with
+        ``data.masks=background``, inside the masks' visual hull); else in a random box."""
         generator = torch.Generator().manual_seed(0)
         points = getattr(scene, "points", None)
         if points is not None and len(points) > 0:
             log.info("Gaussians start from the capture's %d sparse points", len(points))
-            self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
-            return
-        points = self.triangulated_points(scene.train) if self.triangulate else None
+        else:
+            points = self.triangulated_points(scene.train) if self.triangulate else None
         if points is not None:
             self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
             return
@@ -180,7 +185,7 @@ class SplatModule(SceneModule):
                      self.random_count, self.random_extent, self.random_extent)
             positions = (torch.rand(self.random_count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
             colours = torch.rand(self.random_count, 3, generator=generator)
-        self.gaussians.initialise(positions, colours, generator)
+        self.gaussians.initialise(positions, colours, generator, scale=self.random_scale)
 
     @staticmethod
     def triangulated_points(views: Any) -> SparsePoints | None:

@@ -62,14 +62,18 @@ class Gaussians(nn.Module):
         return torch.cat([self.sh0, self.shN], dim=1)
 
     @torch.no_grad()
-    def initialise(self, positions: torch.Tensor, colours: torch.Tensor, generator: torch.Generator | None = None) -> None:
+    def initialise(self, positions: torch.Tensor, colours: torch.Tensor, generator: torch.Generator | None = None,
+                   scale: float | None = None) -> None:
         """Start from (N, 3) ``positions`` with (N, 3) ``colours`` in [0, 1]: each Gaussian round, its scale
-        ``initial_scale`` times the mean distance to its 3 nearest neighbours (3DGS's), a random rotation, opacity
-        ``initial_opacity``."""
+        ``scale`` (None: ``initial_scale``) times the mean distance to its 3 nearest neighbours (3DGS's), a random
+        rotation, opacity ``initial_opacity``."""
         n = positions.shape[0]
         device = self.means.device
         positions, colours = positions.to(device, torch.float32), colours.to(device, torch.float32)
-        distances = self.initial_scale * nearest_neighbour_distances(positions, 3).mean(dim=-1).clamp(min=1e-7)
+        scale = self.initial_scale if scale is None else scale
+        if scale <= 0:
+            raise ValueError(f"a Gaussian's start scale must be > 0, got {scale}")
+        distances = scale * nearest_neighbour_distances(positions, 3).mean(dim=-1).clamp(min=1e-7)
         values = {
             "means": positions,
             "quats": torch.nn.functional.normalize(torch.randn(n, 4, generator=generator).to(device), dim=-1),

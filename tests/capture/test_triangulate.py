@@ -1,0 +1,97 @@
+"""Sparse points of a capture that has poses but no points, triangulated from its views with the poses held fixed
+(capture/triangulate.py), and the Gaussians' start from them (model.triangulate)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import pytest
+import torch
+
+from nerf_lightning.capture.triangulate import pose_pairs, triangulate_views
+from nerf_lightning.data.formats import load_turntable
+from nerf_lightning.data.formats.turntable import BOXES, DISC, SPHERES
+from nerf_lightning.data.points import SparsePoints
+from nerf_lightning.errors import MissingExtraError
+from nerf_lightning.geometry.cameras import look_at
+from tests.capture.test_process_data import needs_pycolmap
+
+
+def ring(count: int, distance: float = 3.0) -> torch.Tensor:
+    """(count, 4, 4) OpenCV c2w of cameras on a ring round the origin, looking at it."""
+    angles = torch.arange(count) * 2 * math.pi / count
+    return look_at(torch.stack([distance * torch.cos(angles), distance * torch.sin(angles), 0.5 * torch.ones(count)], dim=-1))
+
+
+def test_each_view_is_paired_with_its_nearest_and_never_with_one_facing_it():
+    c2w = ring(12)
+    pairs = [pair for chunk in pose_pairs(c2w, neighbours=2, chunk=5) for pair in chunk]
+    assert all(len(chunk) <= 5 for chunk in pose_pairs(c2w, neighbours=2, chunk=5))
+    assert sorted(set(pairs)) == pairs and all(i < j for i, j in pairs)
+    # on a ring the 2 nearest are the two beside each view: the 12 neighbouring pairs, round the ring
+    assert set(pairs) == {(min(i, (i + 1) % 12), max(i, (i + 1) % 12)) for i in range(12)}
+    # however many are asked for, a view never meets those across the ring, which look back at it
+    wide = {pair for chunk in pose_pairs(c2w, neighbours=11) for pair in chunk}
+    assert (0, 6) not in wide and (3, 9) not in wide and (0, 2) in wide and (0, 3) in wide
+
+
+def object_distance(points: torch.Tensor) -> torch.Tensor:
+    """(P,) the distance of (P, 3) points in the turntable object's frame to its surface (spheres, boxes, the disc)."""
+    distances = [(points - torch.tensor(centre)).norm(dim=-1) - radius for centre, radius in SPHERES]
+    for centre, half in BOXES:
+        q = (points - torch.tensor(centre)).abs() - torch.tensor(half)
+        distances.append(q.clamp_min(0).norm(dim=-1) + q.max(dim=-1).values.clamp_max(0))
+    radius, bottom, top = DISC
+    radial = points[:, :2].norm(dim=-1) - radius
+    height = (points[:, 2] - 0.5 * (top + bottom)).abs() - 0.5 * (top - bottom)
+    q = torch.stack([radial, height], dim=-1)
+    distances.append(q.clamp_min(0).norm(dim=-1) + q.max(dim=-1).values.clamp_max(0))
+    return torch.stack(distances).min(dim=0).values.abs()
+
+
+@needs_pycolmap
+def test_a_masked_turntable_triangulated_from_its_poses_lies_on_the_object(scene_cache):
+    """The turntable's object turns and its room stands still: only inside the masks do the photos agree with the
+    object-frame poses. Triangulated inside the masks, the points lie on the object's surface, within a pixel's
+    footprint; they are coloured from the photos (the object's noise, not grey)."""
+    scene = load_turntable(cache_dir=scene_cache)
+    views = scene.train.subset(list(range(0, len(scene.train), 2)))
+    points, report = triangulate_views(views)
+    assert len(points) >= 200, report
+    assert report["mean_reprojection_error_px"] < 1.0 and set(report["seconds"]) == {"features", "matching", "triangulation"}
+    capture_from_world = torch.linalg.inv(scene.world_from_capture.double())
+    in_capture = (points.positions.double() @ capture_from_world[:3, :3].T + capture_from_world[:3, 3]).float()
+    distance = object_distance(in_capture)
+    pixel = 3.2 * 2 * math.tan(math.radians(22.5)) / views.width  # a pixel's footprint on the object
+    assert float(distance.median()) < pixel and float((distance < 4 * pixel).float().mean()) > 0.95, distance.quantile(torch.tensor([0.5, 0.9, 0.99]))
+    assert points.colours.float().std() > 10
+
+
+def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_warning(procedural_scene, make_config, monkeypatch, caplog):
+    from hydra.utils import instantiate
+
+    import nerf_lightning.capture.triangulate as triangulate
+
+    cfg = make_config("experiment=splat_360_cpu", "model.triangulate=true", "model.random_count=500")
+    generator = torch.Generator().manual_seed(0)
+    found = SparsePoints(torch.randn(300, 3, generator=generator), torch.randint(0, 256, (300, 3), dtype=torch.uint8, generator=generator))
+    outcomes = {
+        "found": lambda views: (found, {"seconds": {"features": 1.0}, "matches": {}, "mean_reprojection_error_px": 0.5}),
+        "few": lambda views: (SparsePoints(found.positions[:10], found.colours[:10]), {"seconds": {}, "matches": {"pairs_verified": 0}}),
+        "no pycolmap": lambda views: (_ for _ in ()).throw(MissingExtraError("camera poses need pycolmap, the colmap extra")),
+    }
+    for outcome, fake in outcomes.items():
+        monkeypatch.setattr(triangulate, "triangulate_views", lambda views, **_: fake(views))
+        model = instantiate(cfg.model)
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="nerf_lightning.models.splat"):
+            model.start_gaussians(procedural_scene)
+        warnings = [record for record in caplog.records if record.levelno == logging.WARNING]
+        if outcome == "found":
+            assert not warnings and "300 triangulated from its" in caplog.text
+            torch.testing.assert_close(model.gaussians.means.detach(), found.positions)
+        else:
+            assert len(warnings) == 1 and "model.triangulate" in warnings[0].getMessage(), caplog.text
+            assert ("pycolmap" in warnings[0].getMessage()) == (outcome == "no pycolmap")
+            assert len(model.gaussians) == 500  # the random start

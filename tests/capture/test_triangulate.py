@@ -6,7 +6,6 @@ from __future__ import annotations
 import logging
 import math
 
-import pytest
 import torch
 
 from nerf_lightning.capture.triangulate import pose_pairs, triangulate_views

@@ -3,6 +3,7 @@ from sparse points or at random; the refusals of data=rays and NDC."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -143,8 +144,35 @@ def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():
     smaller.initialise(positions, torch.rand(5, 3))
     assert float(full.log_scales[0, 0]) == pytest.approx(math.log(2.0))  # (1 + 2 + 3) / 3
     torch.testing.assert_close(smaller.log_scales.detach(), full.log_scales.detach() + math.log(0.25))
+    # a start of its own scale (the model's random_scale) instead of initial_scale
+    full.initialise(positions, torch.rand(5, 3), scale=0.25)
+    torch.testing.assert_close(full.log_scales.detach(), smaller.log_scales.detach())
     with pytest.raises(ValueError, match="initial_scale must be > 0"):
         Gaussians(initial_scale=0.0)
+    with pytest.raises(ValueError, match="start scale must be > 0"):
+        full.initialise(positions, torch.rand(5, 3), scale=-1.0)
+
+
+def test_sparse_points_start_at_initial_scale_and_a_random_start_at_random_scale(procedural_scene, make_config):
+    from hydra.utils import instantiate
+
+    from nerf_lightning.data.points import SparsePoints
+
+    cfg = make_config("experiment=splat_360_cpu", "model.triangulate=false", "model.random_count=200")
+    assert cfg.model.random_scale == 0.15 and cfg.model.gaussians.initial_scale == 1.0
+    random_start = instantiate(cfg.model)
+    random_start.start_gaussians(procedural_scene)
+    unscaled = instantiate(make_config("experiment=splat_360_cpu", "model.triangulate=false", "model.random_count=200",
+                                       "model.random_scale=null").model)
+    unscaled.start_gaussians(procedural_scene)  # the same seeded points, at initial_scale
+    torch.testing.assert_close(random_start.gaussians.log_scales.detach(),
+                               unscaled.gaussians.log_scales.detach() + math.log(0.15))
+    points = SparsePoints(random_start.gaussians.means.detach().clone(), torch.full((200, 3), 128, dtype=torch.uint8))
+    from_points = instantiate(cfg.model)
+    from_points.start_gaussians(dataclasses.replace(procedural_scene, points=points))
+    torch.testing.assert_close(from_points.gaussians.log_scales.detach(), unscaled.gaussians.log_scales.detach())
+    with pytest.raises(ValueError, match="model.random_scale must be > 0"):
+        instantiate(make_config("experiment=splat_360_cpu", "model.random_scale=0").model)
 
 
 def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(procedural_scene, make_config, tmp_path, caplog):

@@ -77,6 +77,9 @@ class SplatModule(SceneModule):
             (:func:`~nerf_lightning.capture.triangulate.triangulate_views`: COLMAP's point triangulator through pycolmap,
             the colmap extra; inside the masks where the views have them), and the Gaussians start there; where
             pycolmap is missing or fewer than :data:`MIN_TRIANGULATED` points come back, one warning and the random start.
+        random_beside_points: random start points added beside the sparse points (read or triangulated), placed as the
+            random start places them, at ``random_scale``: where the points miss (surfaces without features, what few
+            views see) densification has nothing to grow from.
         appearance: a learnt colour transform for each training view
             (:class:`~nerf_lightning.splats.appearance.ViewColourAffine`: the Gaussians' colours in a training view's
             render, not the background, through its affine map before the loss; its own learning rate, its penalty
@@ -93,7 +96,8 @@ class SplatModule(SceneModule):
                  strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
                  rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
-                 random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
+                 random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False,
+                 random_beside_points: int = 0, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
         super().__init__(optimizer, scheduler)
         self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
@@ -110,7 +114,9 @@ class SplatModule(SceneModule):
         self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
         if random_scale is not None and random_scale <= 0:
             raise ValueError(f"model.random_scale must be > 0 (or null), got {random_scale}")
-        self.random_scale, self.triangulate = random_scale, triangulate
+        if random_beside_points < 0:
+            raise ValueError(f"model.random_beside_points must be >= 0, got {random_beside_points}")
+        self.random_scale, self.triangulate, self.random_beside_points = random_scale, triangulate, random_beside_points
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
         self.view_size: tuple[int, int] | None = None  # a whole training view's height and width (set by setup)
@@ -159,33 +165,47 @@ class SplatModule(SceneModule):
 
     def start_gaussians(self, scene: Any, mask_mode: str | None = None) -> None:
         """The Gaussians' start: the capture's sparse points where it has them, else (``triangulate``) those
-        triangulated from its training views; else, with ``random_start=views``, on training pixels' rays (with
-        ``data.masks=background``, inside the masks' visual hull); else in a random box."""
+        triangulated from its training views, with ``random_beside_points`` random points beside them; else
+        ``random_count`` random points (:meth:`random_points`)."""
         generator = torch.Generator().manual_seed(0)
         points = getattr(scene, "points", None)
         if points is not None and len(points) > 0:
             log.info("Gaussians start from the capture's %d sparse points", len(points))
         else:
             points = self.triangulated_points(scene.train) if self.triangulate else None
-        if points is not None:
-            self.gaussians.initialise(points.positions, points.colours.float() / 255.0, generator)
+        if points is None:
+            positions, colours = self.random_points(scene, mask_mode, self.random_count, generator, "the capture has no sparse points: ")
+            self.gaussians.initialise(positions, colours, generator, scale=self.random_scale)
             return
+        positions, colours = points.positions, points.colours.float() / 255.0
+        if self.random_beside_points == 0:
+            self.gaussians.initialise(positions, colours, generator)
+            return
+        beside, beside_colours = self.random_points(scene, mask_mode, self.random_beside_points, generator, "beside the points, ")
+        random_scale = self.gaussians.initial_scale if self.random_scale is None else self.random_scale
+        scale = torch.cat([torch.full((len(positions),), self.gaussians.initial_scale), torch.full((len(beside),), random_scale)])
+        self.gaussians.initialise(torch.cat([positions, beside]), torch.cat([colours, beside_colours]), generator, scale=scale)
+
+    def random_points(self, scene: Any, mask_mode: str | None, count: int, generator: torch.Generator,
+                      said: str = "") -> tuple[torch.Tensor, torch.Tensor]:
+        """``count`` random start points -> positions (P, 3) and colours (P, 3) in [0, 1]: with ``random_start=views``,
+        on training pixels' rays (with ``data.masks=background``, inside the masks' visual hull, where fewer may come
+        back); else in a random box. The log says where, after ``said``."""
         near = float(scene.near) if self.random_near is None else self.random_near
         far = min(float(scene.far), self.random_extent)
         if self.random_start == "views" and mask_mode == "background" and scene.train.masks is not None:
-            positions, colours = points_in_visual_hull(scene.train, near, far, self.random_count, generator)
-            log.info("the capture has no sparse points: %d Gaussians start inside the visual hull of its masks (on masked "
-                     "pixels' rays at depths %g to %g that the other views see inside their masks)", len(positions), near, far)
+            positions, colours = points_in_visual_hull(scene.train, near, far, count, generator)
+            log.info("%s%d Gaussians start at random inside the visual hull of the capture's masks (on masked pixels' rays at "
+                     "depths %g to %g that the other views see inside their masks)", said, len(positions), near, far)
         elif self.random_start == "views":
-            log.info("the capture has no sparse points: %d Gaussians start on random training pixels' rays at depths "
-                     "%g to %g, with their pixels' colours", self.random_count, near, far)
-            positions, colours = points_seen_by_views(scene.train, near, far, self.random_count, generator)
+            log.info("%s%d Gaussians start at random on training pixels' rays at depths %g to %g, with their pixels' colours",
+                     said, count, near, far)
+            positions, colours = points_seen_by_views(scene.train, near, far, count, generator)
         else:
-            log.info("the capture has no sparse points: %d Gaussians start uniform in [-%g, %g]^3 with random colours",
-                     self.random_count, self.random_extent, self.random_extent)
-            positions = (torch.rand(self.random_count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
-            colours = torch.rand(self.random_count, 3, generator=generator)
-        self.gaussians.initialise(positions, colours, generator, scale=self.random_scale)
+            log.info("%s%d Gaussians start uniform in [-%g, %g]^3 with random colours", said, count, self.random_extent, self.random_extent)
+            positions = (torch.rand(count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
+            colours = torch.rand(count, 3, generator=generator)
+        return positions, colours
 
     @staticmethod
     def triangulated_points(views: Any) -> SparsePoints | None:

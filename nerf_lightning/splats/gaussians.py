@@ -63,16 +63,17 @@ class Gaussians(nn.Module):
 
     @torch.no_grad()
     def initialise(self, positions: torch.Tensor, colours: torch.Tensor, generator: torch.Generator | None = None,
-                   scale: float | None = None) -> None:
+                   scale: float | torch.Tensor | None = None) -> None:
         """Start from (N, 3) ``positions`` with (N, 3) ``colours`` in [0, 1]: each Gaussian round, its scale
-        ``scale`` (None: ``initial_scale``) times the mean distance to its 3 nearest neighbours (3DGS's), a random
-        rotation, opacity ``initial_opacity``."""
+        ``scale`` (a number, or (N,) one a Gaussian; None: ``initial_scale``) times the mean distance to its 3 nearest
+        neighbours (3DGS's), a random rotation, opacity ``initial_opacity``."""
         n = positions.shape[0]
         device = self.means.device
         positions, colours = positions.to(device, torch.float32), colours.to(device, torch.float32)
-        scale = self.initial_scale if scale is None else scale
-        if scale <= 0:
-            raise ValueError(f"a Gaussian's start scale must be > 0, got {scale}")
+        scale = torch.as_tensor(self.initial_scale if scale is None else scale, dtype=torch.float32, device=device)
+        if scale.ndim > 1 or (scale.ndim == 1 and len(scale) != n) or not bool((scale > 0).all()):
+            raise ValueError(f"a Gaussian's start scale must be > 0, one number or one a Gaussian ({n}), got {tuple(scale.shape)} "
+                             f"from {float(scale.min()) if scale.numel() else 'none'}")
         distances = scale * nearest_neighbour_distances(positions, 3).mean(dim=-1).clamp(min=1e-7)
         values = {
             "means": positions,

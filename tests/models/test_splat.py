@@ -173,6 +173,18 @@ def test_sparse_points_start_at_initial_scale_and_a_random_start_at_random_scale
     torch.testing.assert_close(from_points.gaussians.log_scales.detach(), unscaled.gaussians.log_scales.detach())
     with pytest.raises(ValueError, match="model.random_scale must be > 0"):
         instantiate(make_config("experiment=splat_360_cpu", "model.random_scale=0").model)
+    # random points beside the sparse ones: the points first, at initial_scale, then the random ones at random_scale
+    beside = instantiate(make_config("experiment=splat_360_cpu", "model.random_count=200", "model.random_beside_points=50").model)
+    beside.start_gaussians(dataclasses.replace(procedural_scene, points=points))
+    means = beside.gaussians.means.detach()
+    assert len(means) == 250
+    torch.testing.assert_close(means[:200], points.positions)
+    together = Gaussians(sh_degree=0)
+    together.initialise(means, torch.rand(250, 3))  # the union's neighbour distances, at 1
+    torch.testing.assert_close(beside.gaussians.log_scales.detach()[:200], together.log_scales.detach()[:200])
+    torch.testing.assert_close(beside.gaussians.log_scales.detach()[200:], together.log_scales.detach()[200:] + math.log(0.15))
+    with pytest.raises(ValueError, match="model.random_beside_points must be >= 0"):
+        instantiate(make_config("experiment=splat_360_cpu", "model.random_beside_points=-1").model)
 
 
 def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(procedural_scene, make_config, tmp_path, caplog):

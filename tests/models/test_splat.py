@@ -154,6 +154,7 @@ def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():
 
 
 def test_sparse_points_start_at_initial_scale_and_a_random_start_at_random_scale(procedural_scene, make_config):
+    from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     from nerf_lightning.data.points import SparsePoints
@@ -171,7 +172,7 @@ def test_sparse_points_start_at_initial_scale_and_a_random_start_at_random_scale
     from_points = instantiate(cfg.model)
     from_points.start_gaussians(dataclasses.replace(procedural_scene, points=points))
     torch.testing.assert_close(from_points.gaussians.log_scales.detach(), unscaled.gaussians.log_scales.detach())
-    with pytest.raises(ValueError, match="model.random_scale must be > 0"):
+    with pytest.raises(InstantiationException, match="model.random_scale must be > 0"):
         instantiate(make_config("experiment=splat_360_cpu", "model.random_scale=0").model)
     # random points beside the sparse ones: the points first, at initial_scale, then the random ones at random_scale
     beside = instantiate(make_config("experiment=splat_360_cpu", "model.random_count=200", "model.random_beside_points=50").model)
@@ -183,7 +184,7 @@ def test_sparse_points_start_at_initial_scale_and_a_random_start_at_random_scale
     together.initialise(means, torch.rand(250, 3))  # the union's neighbour distances, at 1
     torch.testing.assert_close(beside.gaussians.log_scales.detach()[:200], together.log_scales.detach()[:200])
     torch.testing.assert_close(beside.gaussians.log_scales.detach()[200:], together.log_scales.detach()[200:] + math.log(0.15))
-    with pytest.raises(ValueError, match="model.random_beside_points must be >= 0"):
+    with pytest.raises(InstantiationException, match="model.random_beside_points must be >= 0"):
         instantiate(make_config("experiment=splat_360_cpu", "model.random_beside_points=-1").model)
 
 

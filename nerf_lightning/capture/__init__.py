@@ -1,5 +1,6 @@
 """nerf-process-data: the user's own photos or video posed in-process through pycolmap, the result written as
-nerfstudio's transforms.json.
+nerfstudio's transforms.json; and the sparse points of a capture that has poses but no points, triangulated with the
+poses held fixed (:mod:`~nerf_lightning.capture.triangulate`).
 
 Its modules load when first asked for, so that the command's key check reads :mod:`~nerf_lightning.capture.choices`
 without loading torch or pycolmap."""

@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+# how to install pycolmap, for the messages of whatever needs it
+COLMAP_EXTRA = 'pip install -c constraints-cpu.txt -e ".[colmap]"'
+
 # matcher=: which image pairs COLMAP matches (auto: exhaustive for a small capture, sequential for a long one)
 MATCHERS = ("auto", "exhaustive", "sequential")
 # mapper=: COLMAP's global mapper or its incremental one (auto: both tried, the model that explains more kept)

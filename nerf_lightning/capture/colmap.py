@@ -38,12 +38,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nerf_lightning.capture.choices import CAMERA_MODELS, CAMERA_PARAMETERS, MAPPERS, MATCHERS  # noqa: F401 (also read from here)
+from nerf_lightning.capture.choices import CAMERA_MODELS, CAMERA_PARAMETERS, COLMAP_EXTRA, MAPPERS, MATCHERS  # noqa: F401 (also read from here)
 from nerf_lightning.capture.images import exif_focal_length, mask_name, natural_key
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 
-COLMAP_EXTRA = 'pip install -c constraints-cpu.txt -e ".[colmap]"'
 # exhaustive matching costs n^2 / 2 pairs: beyond this many images ``auto`` matches neighbours in name order
 EXHAUSTIVE_UP_TO = 100
 

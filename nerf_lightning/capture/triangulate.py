@@ -25,14 +25,14 @@ import numpy as np
 import torch
 from PIL import Image
 
-from nerf_lightning.capture.colmap import (colmap_log, database_statistics, exhaustive_pairs, extract_features, import_pycolmap,
+from nerf_lightning.capture.colmap import (chunks, colmap_log, database_statistics, exhaustive_pairs, extract_features, import_pycolmap,
                                            match_features, model_statistics, sparse_points)
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.scene import Views
 
 # a capture of at most this many views matches every pair; a larger one each view with its nearest NEIGHBOURS
-EXHAUSTIVE_UP_TO = 40
+ALL_PAIRS_UP_TO = 40
 NEIGHBOURS = 20
 
 
@@ -51,7 +51,7 @@ def pose_pairs(c2w: torch.Tensor, neighbours: int = NEIGHBOURS, chunk: int = 100
     nearest = distance.topk(min(neighbours, count - 1), dim=1, largest=False)
     pairs = sorted({(min(i, j), max(i, j)) for i in range(count) for j, gap in zip(nearest.indices[i].tolist(), nearest.values[i].tolist())
                     if gap < torch.inf})
-    return [pairs[start : start + chunk] for start in range(0, len(pairs), chunk)]
+    return [list(part) for part in chunks(pairs, chunk)]
 
 
 def write_views(views: Views, folder: Path, masks: bool) -> list[str]:
@@ -72,14 +72,29 @@ def write_views(views: Views, folder: Path, masks: bool) -> list[str]:
     return names
 
 
-def posed_model(database: Path, views: Views, names: list[str]) -> Any:
-    """A ``pycolmap.Reconstruction`` of the views' known cameras and poses, under the ids the database gave their
-    images; the database's cameras are set to the views' pinhole intrinsics (the triangulator reads both)."""
+def matched_names(database: Path) -> set[str]:
+    """The names of the images in at least one geometrically verified pair of the ``database``: the triangulator's
+    correspondence graph holds only those, and COLMAP fails (out of range, on a worker thread) on a posed image
+    outside it."""
+    pycolmap = import_pycolmap()
+    with contextlib.closing(pycolmap.Database.open(database)) as opened:
+        names = {image.image_id: image.name for image in opened.read_all_images()}
+        pair_ids, inliers = opened.read_two_view_geometry_num_inliers()
+        return {names[image_id] for pair_id, count in zip(pair_ids, inliers) if count > 0
+                for image_id in pycolmap.pair_id_to_image_pair(pair_id)}
+
+
+def posed_model(database: Path, views: Views, names: list[str], kept: set[str]) -> Any:
+    """A ``pycolmap.Reconstruction`` of the known cameras and poses of the views named in ``kept`` (``names``: each
+    view's image name), under the ids the database gave their images; the database's cameras are set to the views'
+    pinhole intrinsics (the triangulator reads both)."""
     pycolmap = import_pycolmap()
     model = pycolmap.Reconstruction()
     with contextlib.closing(pycolmap.Database.open(database)) as opened:
         by_name = {image.name: image for image in opened.read_all_images()}
         for index, name in enumerate(names):
+            if name not in kept:
+                continue
             image = by_name[name]
             K = views.K[index].double()
             camera = pycolmap.Camera(model="PINHOLE", width=views.width, height=views.height, camera_id=image.camera_id,
@@ -96,14 +111,17 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
                       progress: bool = False, verbose: bool = False) -> tuple[SparsePoints, dict[str, Any]]:
     """Sparse points of the scene the posed ``views`` see (their images and poses; see the module's docstring) ->
     the points in the views' world with their colours, and what each stage took and left: ``seconds`` (features,
-    matching, triangulation), ``matches`` (:func:`~nerf_lightning.capture.colmap.database_statistics`) and the
-    model's statistics (:func:`~nerf_lightning.capture.colmap.model_statistics`).
+    matching, triangulation), ``matches`` (:func:`~nerf_lightning.capture.colmap.database_statistics`), the views
+    in a verified pair (``views_matched``) and the model's statistics
+    (:func:`~nerf_lightning.capture.colmap.model_statistics`).
 
     Args:
         masks: keep each view's features inside its mask, where the views have masks.
         max_features: SIFT features kept a view.
-        neighbours: the views each view is matched with beyond :data:`EXHAUSTIVE_UP_TO` views (:func:`pose_pairs`).
+        neighbours: the views each view is matched with beyond :data:`ALL_PAIRS_UP_TO` views (:func:`pose_pairs`).
         seed: the seed of the matches' RANSAC.
+    A view in no verified pair (no features: an empty mask, a blank photo) is left out; where fewer than 2 views
+    matched, no points come back.
     """
     if views.images is None:
         raise ValueError("triangulating sparse points needs the views' images")
@@ -122,16 +140,23 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
         seconds["features"] = time.perf_counter() - started
 
         started = time.perf_counter()
-        pairs = exhaustive_pairs(len(views)) if len(views) <= EXHAUSTIVE_UP_TO else pose_pairs(views.c2w, neighbours)
+        pairs = exhaustive_pairs(len(views)) if len(views) <= ALL_PAIRS_UP_TO else pose_pairs(views.c2w, neighbours)
         match_features(database, names, pairs, folder / "pairs", seed, progress)
         seconds["matching"] = time.perf_counter() - started
         matches = database_statistics(database)
 
         started = time.perf_counter()
-        model = pycolmap.triangulate_points(posed_model(database, views, names), database, folder / "images", folder / "sparse",
+        kept = matched_names(database)
+        if len(kept) < 2:  # nothing to triangulate: no view matched another
+            return SparsePoints.mapped(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)), \
+                {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, "points": 0,
+                 "views_matched": len(kept)}
+        # the triangulator's own sampling takes COLMAP's default seed: the same views give the same points (tested)
+        model = pycolmap.triangulate_points(posed_model(database, views, names, kept), database, folder / "images", folder / "sparse",
                                             options=pycolmap.IncrementalPipelineOptions())
         seconds["triangulation"] = time.perf_counter() - started
         positions, colours = sparse_points(model)
         statistics = model_statistics(model)
-    report = {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, **statistics}
+    report = {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, **statistics,
+              "views_matched": len(kept)}
     return SparsePoints.mapped(positions, colours), report

@@ -19,6 +19,7 @@ from nerf_lightning.data.batches import ViewBatch
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
+from nerf_lightning.capture.choices import COLMAP_EXTRA
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
@@ -172,7 +173,7 @@ class SplatModule(SceneModule):
         if points is not None and len(points) > 0:
             log.info("Gaussians start from the capture's %d sparse points", len(points))
         else:
-            points = self.triangulated_points(scene.train) if self.triangulate else None
+            points = self.triangulated_points(scene.train, masks=mask_mode is not None) if self.triangulate else None
         if points is None:
             positions, colours = self.random_points(scene, mask_mode, self.random_count, generator, "the capture has no sparse points: ")
             self.gaussians.initialise(positions, colours, generator, scale=self.random_scale)
@@ -208,15 +209,20 @@ class SplatModule(SceneModule):
         return positions, colours
 
     @staticmethod
-    def triangulated_points(views: Any) -> SparsePoints | None:
-        """The sparse points triangulated from the training ``views`` and their poses; None, after one warning saying
-        why, where pycolmap is missing or too few points come back (the random start follows)."""
+    def triangulated_points(views: Any, masks: bool = True) -> SparsePoints | None:
+        """The sparse points triangulated from the training ``views`` and their poses (with ``masks``, inside the views'
+        masks, where they have them); None, after one warning saying why, where pycolmap is missing, fails, or too few
+        points come back (the random start follows)."""
         try:
             from nerf_lightning.capture.triangulate import triangulate_views
 
-            points, report = triangulate_views(views)
-        except MissingExtraError as error:
-            log.warning("model.triangulate: %s; the Gaussians start at random instead", error)
+            points, report = triangulate_views(views, masks=masks)
+        except MissingExtraError:
+            log.warning("model.triangulate needs pycolmap, the colmap extra (%s); the Gaussians start at random instead", COLMAP_EXTRA)
+            return None
+        except (RuntimeError, ValueError, IndexError, KeyError) as error:  # what pycolmap raises where COLMAP gives up
+            log.warning("model.triangulate: COLMAP could not triangulate the %d training views (%s: %s); the Gaussians start at "
+                        "random instead", len(views), type(error).__name__, error)
             return None
         if len(points) < MIN_TRIANGULATED:
             log.warning("model.triangulate: only %d points triangulated from the %d training views (%s); the Gaussians start at "

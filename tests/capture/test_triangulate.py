@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -69,6 +70,25 @@ def test_a_masked_turntable_triangulated_from_its_poses_lies_on_the_object(scene
     unmasked, _ = triangulate_views(views, masks=False)
     off = object_distance((unmasked.positions.double() @ capture_from_world[:3, :3].T + capture_from_world[:3, 3]).float())
     assert float(off.median()) > 10 * pixel
+    assert report["views_matched"] == len(views)
+    again, _ = triangulate_views(views)
+    assert torch.equal(again.positions, points.positions) and torch.equal(again.colours, points.colours)
+
+
+@needs_pycolmap
+def test_views_that_match_nothing_are_left_out_and_none_matching_gives_no_points(scene_cache):
+    """COLMAP's triangulator fails on a posed image outside its correspondence graph: a view with no features (an
+    empty mask) is left out of the model; where no two views match, no points come back (the model then warns and
+    starts at random)."""
+    views = load_turntable(cache_dir=scene_cache).train
+    masks = views.masks.clone()
+    masks[0] = False
+    points, report = triangulate_views(dataclasses.replace(views, masks=masks))
+    assert report["views_matched"] == len(views) - 1 and len(points) >= 200, report
+    masks[1:] = False
+    masks[1, :8, :8] = True  # a few pixels of the room: nothing to match
+    points, report = triangulate_views(dataclasses.replace(views, masks=masks))
+    assert len(points) == 0 and report["views_matched"] < 2 and report["points"] == 0, report
 
 
 def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_warning(procedural_scene, make_config, monkeypatch, caplog):
@@ -83,6 +103,7 @@ def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_w
         "found": lambda views: (found, {"seconds": {"features": 1.0}, "matches": {}, "mean_reprojection_error_px": 0.5}),
         "few": lambda views: (SparsePoints(found.positions[:10], found.colours[:10]), {"seconds": {}, "matches": {"pairs_verified": 0}}),
         "no pycolmap": lambda views: (_ for _ in ()).throw(MissingExtraError("camera poses need pycolmap, the colmap extra")),
+        "COLMAP fails": lambda views: (_ for _ in ()).throw(RuntimeError("Check failed: image_id")),
     }
     for outcome, fake in outcomes.items():
         monkeypatch.setattr(triangulate, "triangulate_views", lambda views, **_: fake(views))
@@ -96,5 +117,6 @@ def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_w
             torch.testing.assert_close(model.gaussians.means.detach(), found.positions)
         else:
             assert len(warnings) == 1 and "model.triangulate" in warnings[0].getMessage(), caplog.text
-            assert ("pycolmap" in warnings[0].getMessage()) == (outcome == "no pycolmap")
+            assert ("needs pycolmap" in warnings[0].getMessage()) == (outcome == "no pycolmap")
+            assert ("could not triangulate" in warnings[0].getMessage()) == (outcome == "COLMAP fails")
             assert len(model.gaussians) == 500  # the random start

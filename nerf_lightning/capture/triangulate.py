@@ -23,13 +23,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image
 
 from nerf_lightning.capture.colmap import (chunks, colmap_log, database_statistics, exhaustive_pairs, extract_features, import_pycolmap,
                                            match_features, model_statistics, sparse_points)
-from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.scene import Views
+from nerf_lightning.io import write_png
 
 # a capture of at most this many views matches every pair; a larger one each view with its nearest NEIGHBOURS
 ALL_PAIRS_UP_TO = 40
@@ -63,11 +62,9 @@ def write_views(views: Views, folder: Path, masks: bool) -> list[str]:
     names = []
     for index in range(len(views)):
         name = f"{index:05d}.png"
-        rgb = views.images[index]
-        rgb = rgb.numpy() if rgb.dtype == torch.uint8 else (as_float_rgb(rgb).clamp(0, 1) * 255).round().byte().numpy()
-        Image.fromarray(np.ascontiguousarray(rgb)).save(folder / "images" / name)
+        write_png(folder / "images" / name, views.images[index])  # uint8 as it is, floats rounded
         if masks:
-            Image.fromarray(views.masks[index].numpy().astype(np.uint8) * 255).save(folder / "masks" / f"{name}.png")
+            write_png(folder / "masks" / f"{name}.png", views.masks[index].float())
         names.append(name)
     return names
 

@@ -148,7 +148,9 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
             return SparsePoints.mapped(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)), \
                 {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, "points": 0,
                  "views_matched": len(kept)}
-        # the triangulator's own sampling takes COLMAP's default seed: the same views give the same points (tested)
+        # COLMAP's random generator is the process's: seeded here, not left where an earlier call put it, so that the
+        # same views give the same points (tested)
+        pycolmap.set_random_seed(seed)
         model = pycolmap.triangulate_points(posed_model(database, views, names, kept), database, folder / "images", folder / "sparse",
                                             options=pycolmap.IncrementalPipelineOptions())
         seconds["triangulation"] = time.perf_counter() - started

@@ -72,7 +72,9 @@ def test_a_masked_turntable_triangulated_from_its_poses_lies_on_the_object(scene
     assert float(off.median()) > 10 * pixel
     assert report["views_matched"] == len(views)
     again, _ = triangulate_views(views)
-    assert torch.equal(again.positions, points.positions) and torch.equal(again.colours, points.colours)
+    assert again.positions.shape == points.positions.shape, (len(again), len(points))
+    assert torch.equal(again.positions, points.positions) and torch.equal(again.colours, points.colours), \
+        (again.positions - points.positions).abs().max()
 
 
 @needs_pycolmap

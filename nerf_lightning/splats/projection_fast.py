@@ -335,6 +335,26 @@ def project_and_shade_backward_loop(means, quats, log_scales, opacities, sh0, sh
 
 
 
+@numba.njit(cache=True)
+def keep_seen(seen, footprints, colours):
+    """The drawn Gaussians' rows (``seen`` (N,) bool) of ``footprints`` (N, 9) and ``colours`` (N, 3), in index
+    order, as separate contiguous arrays: means2d (M, 2), conics (M, 3), opacities (M,), depths (M,), colours (M, 3),
+    extents (M, 2) and their ids (M,) int64. One pass, where numpy's gather and then a copy of each column slice
+    would take several over the rows."""
+    ids = np.flatnonzero(seen)
+    m, dtype = ids.shape[0], footprints.dtype
+    means2d, conics, extents = np.empty((m, 2), dtype), np.empty((m, 3), dtype), np.empty((m, 2), dtype)
+    opacities, depths, kept_colours = np.empty(m, dtype), np.empty(m, dtype), np.empty((m, 3), dtype)
+    for i in range(m):
+        g = ids[i]
+        means2d[i, 0], means2d[i, 1] = footprints[g, 0], footprints[g, 1]
+        conics[i, 0], conics[i, 1], conics[i, 2] = footprints[g, 2], footprints[g, 3], footprints[g, 4]
+        opacities[i], depths[i] = footprints[g, 5], footprints[g, 6]
+        extents[i, 0], extents[i, 1] = footprints[g, 7], footprints[g, 8]
+        kept_colours[i, 0], kept_colours[i, 1], kept_colours[i, 2] = colours[g, 0], colours[g, 1], colours[g, 2]
+    return means2d, conics, opacities, depths, kept_colours, extents, ids.astype(np.int64)
+
+
 class ProjectAndShade(torch.autograd.Function):
     """:func:`project_and_shade_loop` and its gradients as one autograd step: N Gaussians' means (N, 3), quats (N, 4),
     log_scales (N, 3), opacities (N,), sh0 (N, 1, 3), shN (N, K - 1, 3) -> for the M drawn, means2d (M, 2), conics
@@ -351,11 +371,10 @@ class ProjectAndShade(torch.autograd.Function):
         colours = np.empty((n, 3), arrays[0].dtype)
         seen = np.empty(n, np.bool_)
         project_and_shade_loop(*arrays, degree, camera, height, width, antialiased, footprints, colours, seen)
-        ids = np.flatnonzero(seen)
-        kept = footprints[ids]
+        outputs = keep_seen(seen, footprints, colours)
+        ids = outputs[-1]
         ctx.saved = (arrays, degree, camera, height, width, antialiased, ids, shN.shape)
-        outputs = (kept[:, 0:2], kept[:, 2:5], kept[:, 5], kept[:, 6], colours[ids], kept[:, 7:9])
-        outputs = tuple(torch.from_numpy(np.ascontiguousarray(value)) for value in outputs) + (torch.from_numpy(ids),)
+        outputs = tuple(torch.from_numpy(value) for value in outputs)
         ctx.mark_non_differentiable(outputs[5], outputs[6])
         return outputs
 

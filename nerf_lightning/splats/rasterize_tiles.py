@@ -6,7 +6,8 @@ equal), without a tensor of (footprint, pixel) pairs:
 
 1. **Binning** (:func:`bin_footprints`): each footprint's pixel box (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`)
    says which ``tile`` x ``tile`` tiles it touches. The footprints are sorted nearest first once (a stable radix
-   sort, ties by index, as the reference's one sort of them all), then listed tile by tile in that order.
+   sort, ties by index, as the reference's one sort of them all), packed in that order a row each
+   (:func:`pack_footprints`: a tile's loop then reads forwards through memory), and listed tile by tile.
 2. **Forward** (:func:`composite_tiles`), a parallel loop over tiles: a tile keeps its pixels' transmittance and sums,
    and takes its footprints nearest first, each over the pixels of its box inside the tile only. A pair is skipped
    where alpha = min(0.999, o exp(-sigma)) < 1/255 (without an exp where sigma is past log(255 o)); a pixel is done before the footprint that would take its
@@ -21,7 +22,7 @@ equal), without a tensor of (footprint, pixel) pairs:
 
 Transmittances and sums are carried in float64 inside the loops (a pixel may take hundreds of footprints, and the
 backward pass divides by 1 - alpha), the outputs are in the inputs' dtype. The Gaussian's fall-off exp(-sigma) is
-a polynomial written into the loops (:func:`fade`, within 3e-7 of exp), the four features (colour and depth) and
+a table step and a short polynomial written into the loops (:func:`fade`, within 2e-9 of exp), the four features (colour and depth) and
 a footprint's gradient sums are held in registers, and the loops are compiled with fast-math: within the tests' 1e-5
 of the reference, a pair costs a few arithmetic operations and no call.
 
@@ -43,6 +44,9 @@ from nerf_lightning.splats.rasterize import pixel_boxes
 TILE = 16
 # what the loops draw a footprint with: its colour (3) and its depth, the last, by which the footprints are ordered
 FEATURES = 4
+# a packed footprint's row (:func:`pack_footprints`): means2d (2), conic (3), opacity, fade limit, features (4), pixel
+# box (4: first and last column, first and last row), one unused (16 float64: two cache lines)
+PACKED = 16
 
 
 def depth_keys(depths: np.ndarray) -> tuple[np.ndarray, int]:
@@ -79,50 +83,64 @@ def nearest_first(keys: np.ndarray, bits: int) -> np.ndarray:
     return order
 
 
+@numba.njit(parallel=True, cache=True)
+def pack_footprints(order, means2d, conics, opacities, features, fade_limits, boxes):
+    """(M, :data:`PACKED`) float64: the footprints in drawing order (``order`` (M,), nearest first), a row each as the
+    loops read it (see :data:`PACKED`). The loops take a tile's footprints nearest first: rows in that order are read
+    forwards through memory, a cache line or two a footprint, where six arrays indexed by footprint would cost a
+    cache miss each."""
+    packed = np.empty((order.shape[0], PACKED), np.float64)
+    for i in numba.prange(order.shape[0]):
+        f = order[i]
+        packed[i, 0], packed[i, 1] = means2d[f, 0], means2d[f, 1]
+        packed[i, 2], packed[i, 3], packed[i, 4] = conics[f, 0], conics[f, 1], conics[f, 2]
+        packed[i, 5], packed[i, 6] = opacities[f], fade_limits[f]
+        for j in range(FEATURES):
+            packed[i, 7 + j] = features[f, j]
+        for j in range(4):
+            packed[i, 11 + j] = boxes[f, j]
+        packed[i, 15] = 0.0
+    return packed
+
+
 @numba.njit(cache=True)
-def bin_footprints(keys: np.ndarray, bits: int, boxes: np.ndarray, tiles_x: int, tiles_y: int):
-    """Footprints listed tile by tile, nearest first.
+def bin_footprints(packed: np.ndarray, tiles_x: int, tiles_y: int):
+    """The footprints, ``packed`` in drawing order (:func:`pack_footprints`), listed tile by tile.
 
-    ``keys`` (M,) and ``bits``: the footprints' camera z as :func:`depth_keys` gives them; ``boxes`` (M, 4) int64
-    first and last column, first and last row of each footprint's pixels
-    (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`). Returns ``offsets`` (T + 1,) int64 (tile t's
-    footprints are ``entries[offsets[t]:offsets[t + 1]]``), ``entries`` (E,) int32 footprint indices, and
-    ``slot_offsets`` (M + 1,) int64 and ``slots`` (E,) int64: footprint f's positions in ``entries`` are
-    ``slots[slot_offsets[f]:slot_offsets[f + 1]]``, in tile order.
+    Returns ``offsets`` (T + 1,) int64 (tile t's footprints are ``entries[offsets[t]:offsets[t + 1]]``), ``entries``
+    (E,) int32 rows of ``packed``, and ``slot_offsets`` (M + 1,) int64 and ``slots`` (E,) int64: row i's positions in
+    ``entries`` are ``slots[slot_offsets[i]:slot_offsets[i + 1]]``, in tile order.
 
-    The footprints are sorted once, nearest first with ties by index (:func:`nearest_first`), as the reference's
-    one stable sort of them all, then appended to their tiles in that order: every tile's list comes out sorted.
-    Tiles are :data:`TILE` pixels square, a constant, so that finding a footprint's tiles is a shift, not a division."""
-    n = boxes.shape[0]
+    The rows are appended to their tiles in drawing order, so every tile's list comes out nearest first, ties by
+    index, as the reference's one stable sort of them all. Tiles are :data:`TILE` pixels square, a constant, so that
+    finding a footprint's tiles is a shift, not a division."""
+    n = packed.shape[0]
     n_tiles = tiles_x * tiles_y
     offsets = np.zeros(n_tiles + 1, np.int64)
     slot_offsets = np.zeros(n + 1, np.int64)
-    for f in range(n):
-        c0, c1, r0, r1 = boxes[f, 0], boxes[f, 1], boxes[f, 2], boxes[f, 3]
+    for i in range(n):
+        slot_offsets[i + 1] = slot_offsets[i]
+        c0, c1, r0, r1 = int(packed[i, 11]), int(packed[i, 12]), int(packed[i, 13]), int(packed[i, 14])
         if c1 < c0 or r1 < r0:
             continue
-        slot_offsets[f + 1] = (c1 // TILE - c0 // TILE + 1) * (r1 // TILE - r0 // TILE + 1)
+        slot_offsets[i + 1] += (c1 // TILE - c0 // TILE + 1) * (r1 // TILE - r0 // TILE + 1)
         for ty in range(r0 // TILE, r1 // TILE + 1):
             for tx in range(c0 // TILE, c1 // TILE + 1):
                 offsets[ty * tiles_x + tx + 1] += 1
     for t in range(n_tiles):
         offsets[t + 1] += offsets[t]
-    for f in range(n):
-        slot_offsets[f + 1] += slot_offsets[f]
     entries = np.empty(offsets[n_tiles], np.int32)
     slots = np.empty(offsets[n_tiles], np.int64)
     cursor = offsets[:n_tiles].copy()
-    order = nearest_first(keys, bits)
     for i in range(n):
-        f = order[i]
-        c0, c1, r0, r1 = boxes[f, 0], boxes[f, 1], boxes[f, 2], boxes[f, 3]
+        c0, c1, r0, r1 = int(packed[i, 11]), int(packed[i, 12]), int(packed[i, 13]), int(packed[i, 14])
         if c1 < c0 or r1 < r0:
             continue
-        k = slot_offsets[f]
+        k = slot_offsets[i]
         for ty in range(r0 // TILE, r1 // TILE + 1):
             for tx in range(c0 // TILE, c1 // TILE + 1):
                 t = ty * tiles_x + tx
-                entries[cursor[t]] = f
+                entries[cursor[t]] = i
                 slots[k] = cursor[t]
                 cursor[t] += 1
                 k += 1
@@ -136,25 +154,28 @@ def tile_rectangle(t: int, tiles_x: int, tile: int, height: int, width: int):
     return y0, x0, min(y0 + tile, height), min(x0 + tile, width)
 
 
+# exp(-i / FADE_STEPS) for i = 0 .. FADE_STEPS * 8: the steps of fade's table
+FADE_STEPS = 64
+FADE_TABLE = np.exp(-np.arange(FADE_STEPS * 8 + 2) / FADE_STEPS)
+
+
 @numba.njit(inline="always", fastmath=True)
 def fade(sigma: float) -> float:
-    """exp(-sigma) for 0 <= sigma <= 6 (the loops ask no more: a fade limit is at most log(255) plus a hair):
-    (the degree-9 Taylor polynomial of exp at -sigma / 8) ^ 8, within 3e-7 of exp. Inlined arithmetic, where a
-    call to the library's exp for every (footprint, pixel) pair costs more than the rest of the pair's work."""
-    t = -0.125 * sigma
-    p = 1.0 + t * (1.0 + t * (0.5 + t * (1.0 / 6.0 + t * (1.0 / 24.0 + t * (1.0 / 120.0 + t * (1.0 / 720.0 + t * (
-        1.0 / 5040.0 + t * (1.0 / 40320.0 + t * (1.0 / 362880.0)))))))))
-    p = p * p
-    p = p * p
-    return p * p
+    """exp(-sigma) for 0 <= sigma < 8 (the loops ask no more: a fade limit is at most log(255) plus a hair): the
+    table's exp(-i / 64) at the step below, times the degree-3 Taylor polynomial of exp(-r) for the remainder
+    r < 1/64, within 2e-9 of exp. A short chain of arithmetic and one load from a table in the first-level cache,
+    where a call to the library's exp, or a polynomial over the whole range, takes several times as long a pair."""
+    scaled = sigma * FADE_STEPS
+    step = int(scaled)
+    r = (scaled - step) * (1.0 / FADE_STEPS)
+    return FADE_TABLE[step] * (1.0 - r * (1.0 - r * (0.5 - r * (1.0 / 6.0))))
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
-def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, features, fade_limits, height, width, tile,
-                    tiles_x, shaded, accumulation, transmittance, stop):
-    """Composite every pixel front to back. Inputs: the binning (:func:`bin_footprints`), ``boxes`` (M, 4),
-    ``means2d`` (M, 2), ``conics`` (M, 3), ``opacities`` (M,), ``features`` (M, 4) (colour and depth, held in
-    registers a footprint), ``fade_limits`` (M,) float64 (:func:`fade_limits`). Written: ``shaded`` (H * W, 4) the
+def composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shaded, accumulation, transmittance, stop):
+    """Composite every pixel front to back. Inputs: the binning (:func:`bin_footprints`) of the footprints
+    ``packed`` (M, :data:`PACKED`) in drawing order (:func:`pack_footprints`; a footprint's features, colour and
+    depth, are held in registers while it is drawn). Written: ``shaded`` (H * W, 4) the
     weighted sums of the features, ``accumulation`` (H * W,) the sum of the weights, ``transmittance`` (H * W,)
     float64 what is left after the last footprint drawn, ``stop`` (H * W,) int64 the tile-list position at which
     the pixel was done (its tile's end where it never was)."""
@@ -171,13 +192,13 @@ def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, feature
         for k in range(offsets[t], end):
             if active == 0:
                 break
-            f = entries[k]
-            mx, my = np.float64(means2d[f, 0]), np.float64(means2d[f, 1])
-            half_a, b, half_c = 0.5 * np.float64(conics[f, 0]), np.float64(conics[f, 1]), 0.5 * np.float64(conics[f, 2])
-            o, faint = np.float64(opacities[f]), fade_limits[f]
-            f0, f1, f2, f3 = np.float64(features[f, 0]), np.float64(features[f, 1]), np.float64(features[f, 2]), np.float64(features[f, 3])
-            first, last = max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1)
-            for row in range(max(boxes[f, 2], y0), min(boxes[f, 3], y1 - 1) + 1):
+            r = entries[k]
+            mx, my = packed[r, 0], packed[r, 1]
+            half_a, b, half_c = 0.5 * packed[r, 2], packed[r, 3], 0.5 * packed[r, 4]
+            o, faint = packed[r, 5], packed[r, 6]
+            f0, f1, f2, f3 = packed[r, 7], packed[r, 8], packed[r, 9], packed[r, 10]
+            first, last = max(int(packed[r, 11]), x0), min(int(packed[r, 12]), x1 - 1)
+            for row in range(max(int(packed[r, 13]), y0), min(int(packed[r, 14]), y1 - 1) + 1):
                 dy = row + 0.5 - my
                 b_dy, c_dy2 = b * dy, half_c * dy * dy
                 base = (row - y0) * tile_width - x0
@@ -215,8 +236,8 @@ def composite_tiles(offsets, entries, boxes, means2d, conics, opacities, feature
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
-def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities, features, fade_limits, height, width,
-                             tile, tiles_x, transmittance, stop, grad_shaded, grad_accumulation, slot_grads):
+def composite_tiles_backward(offsets, entries, packed, height, width, tile, tiles_x, transmittance, stop, grad_shaded,
+                             grad_accumulation, slot_grads):
     """The gradients of :func:`composite_tiles`, back to front. ``grad_shaded`` (H * W, 4) and ``grad_accumulation``
     (H * W,) are the loss's gradients of its outputs; written: ``slot_grads`` (E, 10), for each tile-list entry
     its footprint's gradient from that tile's pixels: d means2d (2), d conics (3), d opacity, d features (4)."""
@@ -236,14 +257,14 @@ def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities
                 grad_in[p, i] = grad_shaded[pixel, i]
             grad_in[p, 4] = grad_accumulation[pixel]
         for k in range(offsets[t + 1] - 1, offsets[t] - 1, -1):
-            f = entries[k]
-            mx, my = np.float64(means2d[f, 0]), np.float64(means2d[f, 1])
-            a, b, c = np.float64(conics[f, 0]), np.float64(conics[f, 1]), np.float64(conics[f, 2])
-            o, faint = np.float64(opacities[f]), fade_limits[f]
-            f0, f1, f2, f3 = np.float64(features[f, 0]), np.float64(features[f, 1]), np.float64(features[f, 2]), np.float64(features[f, 3])
-            first, last = max(boxes[f, 0], x0), min(boxes[f, 1], x1 - 1)
+            r = entries[k]
+            mx, my = packed[r, 0], packed[r, 1]
+            a, b, c = packed[r, 2], packed[r, 3], packed[r, 4]
+            o, faint = packed[r, 5], packed[r, 6]
+            f0, f1, f2, f3 = packed[r, 7], packed[r, 8], packed[r, 9], packed[r, 10]
+            first, last = max(int(packed[r, 11]), x0), min(int(packed[r, 12]), x1 - 1)
             g_mx = g_my = g_a = g_b = g_c = g_o = g_f0 = g_f1 = g_f2 = g_f3 = 0.0
-            for row in range(max(boxes[f, 2], y0), min(boxes[f, 3], y1 - 1) + 1):
+            for row in range(max(int(packed[r, 13]), y0), min(int(packed[r, 14]), y1 - 1) + 1):
                 dy = row + 0.5 - my
                 b_dy, c_dy2 = b * dy, 0.5 * c * dy * dy
                 base = (row - y0) * tile_width - x0
@@ -284,12 +305,14 @@ def composite_tiles_backward(offsets, entries, boxes, means2d, conics, opacities
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def sum_slots(slot_offsets, slots, slot_grads, out):
-    """``out`` (M, G): each footprint's gradient, the sum of its tile-list slots (``slot_grads`` (E, G)) in tile order."""
-    for f in numba.prange(out.shape[0]):
-        for j in range(slot_offsets[f], slot_offsets[f + 1]):
-            for i in range(out.shape[1]):
-                out[f, i] += slot_grads[slots[j], i]
+def sum_slots(order, slot_offsets, slots, slot_grads, out):
+    """``out`` (M, G): each footprint's gradient, the sum of its tile-list slots (``slot_grads`` (E, G)) in tile
+    order; the slots are listed by drawing order, footprint ``order[i]``'s at ``slot_offsets[i]``."""
+    for i in numba.prange(order.shape[0]):
+        f = order[i]
+        for j in range(slot_offsets[i], slot_offsets[i + 1]):
+            for g in range(out.shape[1]):
+                out[f, g] += slot_grads[slots[j], g]
 
 
 def fade_limits(opacities: np.ndarray) -> np.ndarray:
@@ -313,32 +336,32 @@ class TileRasterize(torch.autograd.Function):
             raise ValueError(f"TileRasterize draws (M, {FEATURES}) features (colour and depth), got {tuple(features.shape)}")
         tile = TILE
         tiles_x, tiles_y = -(-width // tile), -(-height // tile)
-        arrays = tuple(_numpy(x) for x in (means2d, conics, opacities, features))
-        arrays = (*arrays, fade_limits(arrays[2]))
-        box_array = _numpy(boxes)
-        offsets, entries, slot_offsets, slots = bin_footprints(*depth_keys(arrays[3][:, -1]), box_array, tiles_x, tiles_y)
-        n_pixels, dtype = height * width, arrays[3].dtype
+        means2d_array, conics_array, opacities_array, features_array = (_numpy(x) for x in (means2d, conics, opacities, features))
+        order = nearest_first(*depth_keys(features_array[:, -1]))
+        packed = pack_footprints(order, means2d_array, conics_array, opacities_array, features_array,
+                                 fade_limits(opacities_array), _numpy(boxes))
+        offsets, entries, slot_offsets, slots = bin_footprints(packed, tiles_x, tiles_y)
+        n_pixels, dtype = height * width, features_array.dtype
         shaded = np.empty((n_pixels, FEATURES), dtype)
         accumulation = np.empty(n_pixels, dtype)
         transmittance = np.empty(n_pixels, np.float64)
         stop = np.empty(n_pixels, np.int64)
-        composite_tiles(offsets, entries, box_array, *arrays, height, width, tile, tiles_x, shaded, accumulation, transmittance, stop)
-        ctx.saved = (offsets, entries, slot_offsets, slots, box_array, arrays, transmittance, stop, height, width, tile, tiles_x)
+        composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shaded, accumulation, transmittance, stop)
+        ctx.saved = (order, offsets, entries, slot_offsets, slots, packed, dtype, transmittance, stop, height, width, tile, tiles_x)
         return (torch.from_numpy(shaded).reshape(height, width, -1), torch.from_numpy(accumulation).reshape(height, width))
 
     @staticmethod
     def backward(ctx, grad_shaded, grad_accumulation):
-        offsets, entries, slot_offsets, slots, box_array, arrays, transmittance, stop, height, width, tile, tiles_x = ctx.saved
-        dtype = arrays[3].dtype
+        order, offsets, entries, slot_offsets, slots, packed, dtype, transmittance, stop, height, width, tile, tiles_x = ctx.saved
         grad_shaded = np.zeros((height * width, FEATURES), dtype) if grad_shaded is None else \
             _numpy(grad_shaded).astype(dtype, copy=False).reshape(-1, FEATURES)
         grad_accumulation = np.zeros(height * width, dtype) if grad_accumulation is None else \
             _numpy(grad_accumulation).astype(dtype, copy=False).reshape(-1)
         slot_grads = np.empty((len(entries), 6 + FEATURES), np.float64)
-        composite_tiles_backward(offsets, entries, box_array, *arrays, height, width, tile, tiles_x, transmittance, stop,
+        composite_tiles_backward(offsets, entries, packed, height, width, tile, tiles_x, transmittance, stop,
                                  grad_shaded, grad_accumulation, slot_grads)
-        grads = np.zeros((len(arrays[2]), 6 + FEATURES), np.float64)
-        sum_slots(slot_offsets, slots, slot_grads, grads)
+        grads = np.zeros((len(order), 6 + FEATURES), np.float64)
+        sum_slots(order, slot_offsets, slots, slot_grads, grads)
         grads = torch.from_numpy(grads.astype(dtype))
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None
 

@@ -12,5 +12,7 @@ CAMERA_PATH_SUFFIX = ".json"
 def is_camera_path_file(path: object) -> bool:
     """``render.path`` names a camera path file rather than one of :data:`RENDER_PATHS`."""
     return str(path).lower().endswith(CAMERA_PATH_SUFFIX)
+# data.object_box: where an object's box comes from (nerf_lightning.data.object_box), or null for none
+OBJECT_BOXES = ("visual_hull",)
 # the procedural scene's smallest number of views: its val and test splits take every tenth
 PROCEDURAL_MIN_VIEWS = 10

@@ -10,9 +10,10 @@ import torch
 from torch.utils.data import DataLoader
 
 from nerf_lightning.data.batches import HeldOutView, StepBatchesDataModule
-from nerf_lightning.data.choices import RENDER_PATHS  # noqa: F401 (also read from here)
+from nerf_lightning.data.choices import OBJECT_BOXES, RENDER_PATHS  # noqa: F401 (also read from here)
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background, resolve_mode
+from nerf_lightning.data.object_box import fit_scene_to_box, visual_hull_box
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
 from nerf_lightning.geometry.space import SceneSpace
@@ -58,6 +59,9 @@ class SceneDataModule(StepBatchesDataModule):
         masks: what the capture's masks do (:mod:`~nerf_lightning.data.masks`): ``exclude`` (pixels outside never in
             the loss), ``background`` (they show the background colour: turntables), ``ignore``; None: ``exclude``
             where the capture has masks. ``mask_mode`` is the one in use after ``setup`` (None: no masks used).
+        object_box: ``visual_hull``: the object's box from its masks (:mod:`~nerf_lightning.data.object_box`); the scene
+            is moved and scaled so that the box lies in [-1, 1]^3, and every ray's range is cut to it (``space.bounds``).
+            A field box of [-1, 1]^3 then spends its cells on the object alone. None: the scene as loaded.
         val_steps, val_every, seed: see :class:`StepBatchesDataModule`.
     """
 
@@ -73,6 +77,7 @@ class SceneDataModule(StepBatchesDataModule):
         ndc: bool = False,
         contract: bool = False,
         masks: str | None = None,
+        object_box: str | None = None,
         val_steps: list[int] | tuple[int, ...] = (),
         val_every: int | None = 500,
         seed: int = 0,
@@ -85,6 +90,12 @@ class SceneDataModule(StepBatchesDataModule):
         self.val_views = val_views
         self.val_split = val_split
         self.render_path = render_path
+        if object_box is not None and object_box not in OBJECT_BOXES:
+            raise ValueError(f"data.object_box must be one of {', '.join(OBJECT_BOXES)} or null, got '{object_box}'")
+        if object_box is not None and (ndc or contract):
+            raise ValueError("data.object_box bounds the scene by its object's box: set data.contract=false and data.ndc=false "
+                             "(the field's box then holds the object alone: model.field.aabb=[-1,-1,-1,1,1,1])")
+        self.object_box = object_box
         self.render_frames = render_frames
         self.ndc, self.contract = ndc, contract
         self.masks = masks
@@ -108,8 +119,14 @@ class SceneDataModule(StepBatchesDataModule):
             pass
         scene = self.load_scene(*arguments)
         self.mask_mode = resolve_mode(self.masks, scene.train.masks is not None, scene.source)
+        bounds = None
+        if self.object_box is not None:
+            if self.mask_mode is None:
+                raise ValueError(f"data.object_box={self.object_box} needs the capture's masks in use (data.masks=background or "
+                                 f"exclude), got data.masks={self.masks}" + ("" if scene.train.masks is not None else f" and {scene.source} has none"))
+            scene, bounds = fit_scene_to_box(scene, visual_hull_box(scene.train))
         self.scene = scene
-        self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract)
+        self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract, bounds=bounds)
 
     def cameras_and_images(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The training cameras K (V, 3, 3), c2w (V, 4, 4) and uint8 images (V, H, W, 3) on ``device``, moved once;

@@ -102,6 +102,8 @@ class SceneSpace(nn.Module):
         world_from_capture: (4, 4) similarity from the capture's coordinates to the scene's, or None.
         ndc: sample in normalised device coordinates (forward-facing captures), or None.
         contraction: fields see the scene contracted into [-2, 2]^3 (unbounded captures), or None.
+        bounds: (6,) the box (xmin, ymin, zmin, xmax, ymax, zmax) the scene lies in, where it is known (an object's
+            box fitted to its masks, ``data.object_box``): every ray's range is cut to it, or None.
 
     An ``nn.Module`` so that it moves with its model between devices; its tensors are not in ``state_dict``:
     checkpoints keep :meth:`state` instead.
@@ -115,10 +117,14 @@ class SceneSpace(nn.Module):
         world_from_capture: torch.Tensor | None = None,
         ndc: NDC | None = None,
         contraction: Contraction | None = None,
+        bounds: Sequence[float] | torch.Tensor | None = None,
     ) -> None:
         super().__init__()
         if ndc is not None and contraction is not None:
             raise ValueError("a scene is sampled in NDC (data.ndc=true) or contracted (data.contract=true), not both")
+        if bounds is not None and (ndc is not None or contraction is not None):
+            raise ValueError("an object's box (data.object_box) bounds a scene in its world: it goes with neither data.ndc=true "
+                             "nor data.contract=true")
         if not 0.0 <= near < far:
             raise ValueError(f"the scene space needs 0 <= near < far, got near={near}, far={far}")
         self.near, self.far = float(near), float(far)
@@ -126,11 +132,14 @@ class SceneSpace(nn.Module):
         self.register_buffer("background", torch.as_tensor(background, dtype=torch.float32).clone(), persistent=False)
         wfc = None if world_from_capture is None else torch.as_tensor(world_from_capture, dtype=torch.float32).clone()
         self.register_buffer("world_from_capture", wfc, persistent=False)
+        box = None if bounds is None else torch.as_tensor(bounds, dtype=torch.float32).detach().clone().reshape(6)
+        self.register_buffer("bounds", box, persistent=False)
 
     @classmethod
-    def from_scene(cls, scene: Any, ndc: bool = False, contract: bool = False) -> SceneSpace:
+    def from_scene(cls, scene: Any, ndc: bool = False, contract: bool = False,
+                   bounds: torch.Tensor | None = None) -> SceneSpace:
         """The space of a loaded :class:`~nerf_lightning.data.scene.Scene`: NDC from its training cameras (which must
-        look down -z) with ``ndc``; the contraction with ``contract``."""
+        look down -z) with ``ndc``; the contraction with ``contract``; the box (6,) the scene lies in, ``bounds``."""
         if ndc and contract:
             raise ValueError("data.ndc=true and data.contract=true do not go together: NDC is for forward-facing captures, "
                              "the contraction for captures all around a subject")
@@ -145,7 +154,7 @@ class SceneSpace(nn.Module):
             ndc_space = NDC(float(train.K[0, 0, 0]), train.width, train.height, near_plane=1.0)
             ndc_space.reach = ndc_reach(train, ndc_space)
             near, far = 0.0, 1.0  # NDC rays run from the near plane (t = 0) to infinity (t = 1)
-        return cls(near, far, scene.background, scene.world_from_capture, ndc_space, Contraction() if contract else None)
+        return cls(near, far, scene.background, scene.world_from_capture, ndc_space, Contraction() if contract else None, bounds)
 
     # -- rays and points ----------------------------------------------------------------------------------------
 
@@ -161,10 +170,16 @@ class SceneSpace(nn.Module):
         return points if self.contraction is None else self.contraction(points)
 
     def ray_range(self, rays: Rays, aabb: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(N,) t_enter and t_exit of each ray: near..far, cut to a field-space box ``aabb`` (6,) where that box
-        bounds the rays (not for a contracted scene, whose box holds all of space); t_exit < t_enter: a miss."""
+        """(N,) t_enter and t_exit of each ray: near..far, cut to the scene's :attr:`bounds` where it has them (a ray
+        that misses them gets an empty range, t_exit = t_enter: nothing to sample, the background shows), then to a
+        field-space box ``aabb`` (6,) where that box bounds the rays (not for a contracted scene, whose box holds all
+        of space); t_exit < t_enter: a miss."""
         n_rays = rays.origins.shape[0]
         t_enter, t_exit = rays.origins.new_full((n_rays,), self.near), rays.origins.new_full((n_rays,), self.far)
+        if self.bounds is not None:
+            box_enter, box_exit = ray_aabb_intersect(rays.origins, rays.directions, self.bounds)
+            t_enter = torch.maximum(t_enter, box_enter).clamp(max=self.far)
+            t_exit = torch.maximum(torch.minimum(t_exit, box_exit), t_enter)
         if aabb is None or self.contraction is not None:
             return t_enter, t_exit
         box_enter, box_exit = ray_aabb_intersect(rays.origins, rays.directions, aabb)
@@ -232,13 +247,15 @@ class SceneSpace(nn.Module):
             "world_from_capture": None if self.world_from_capture is None else self.world_from_capture.tolist(),
             "ndc": None if self.ndc is None else self.ndc.state(),
             "contraction": None if self.contraction is None else "max-norm",
+            "bounds": None if self.bounds is None else self.bounds.tolist(),
         }
 
     @classmethod
     def from_state(cls, state: dict[str, Any]) -> SceneSpace:
         ndc = NDC(**state["ndc"]) if state.get("ndc") else None
         return cls(state["near"], state["far"], tuple(state["background"]), state.get("world_from_capture"), ndc,
-                   Contraction() if state.get("contraction") else None)
+                   Contraction() if state.get("contraction") else None, state.get("bounds"))
 
     def extra_repr(self) -> str:
-        return f"near={self.near:g}, far={self.far:g}, ndc={self.ndc}, contraction={self.contraction}"
+        bounds = "" if self.bounds is None else f", bounds={[round(value, 3) for value in self.bounds.tolist()]}"
+        return f"near={self.near:g}, far={self.far:g}, ndc={self.ndc}, contraction={self.contraction}{bounds}"

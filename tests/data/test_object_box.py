@@ -1,0 +1,92 @@
+"""The object's box from a masked capture's visual hull, the scene fitted to it, and rays cut to it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from nerf_lightning.data import RayDataModule
+from nerf_lightning.data.formats.turntable import OBJECT_BOUNDS, load_turntable
+from nerf_lightning.data.object_box import fit_scene_to_box, visual_hull_box
+from nerf_lightning.geometry.contraction import Contraction
+from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.geometry.space import SceneSpace
+
+
+@pytest.fixture(scope="module")
+def turntable(tmp_path_factory):
+    return load_turntable(cache_dir=tmp_path_factory.mktemp("turntable"))
+
+
+def true_box(scene) -> tuple[torch.Tensor, torch.Tensor]:
+    """The turntable object's box (its known bounds in its own frame) in the scene's world."""
+    transform = scene.world_from_capture.double()
+    corners = torch.cartesian_prod(*[torch.tensor([low, high], dtype=torch.float64) for low, high in zip(*OBJECT_BOUNDS)])
+    corners = corners @ transform[:3, :3].T + transform[:3, 3]
+    return corners.min(0).values, corners.max(0).values
+
+
+def test_the_visual_hull_box_holds_the_object_and_little_of_the_room(turntable):
+    box = visual_hull_box(turntable.train).double()
+    low, high = true_box(turntable)
+    # the disc and what stands on it lie inside (the hull is carved from above: below the disc it reaches further)
+    assert (box[:3] <= low[:3] + 1e-3).all() and (box[3:] >= high - 1e-3).all(), (box, low, high)
+    # the cameras stand in [-1, 1]^3: the box takes a small part of that cube, and is not much wider than the object
+    assert float((box[3:] - box[:3]).prod()) < 0.1 * 8.0
+    assert ((box[3:5] - box[:2]) < 1.5 * (high[:2] - low[:2])).all()
+
+
+def test_fitting_moves_the_box_into_the_unit_cube_and_keeps_every_pixel_on_its_point(turntable):
+    box = visual_hull_box(turntable.train)
+    moved, fitted = fit_scene_to_box(turntable, box)
+    assert torch.allclose((fitted[3:] + fitted[:3]) / 2, torch.zeros(3), atol=1e-5)
+    assert abs(float((fitted[3:] - fitted[:3]).max()) - 2.0) < 1e-5
+    # a point of the old world seen by a view is seen at the same pixel in the moved view, at the scaled distance
+    scale = 2.0 / float((box[3:] - box[:3]).max())
+    views, moved_views = turntable.train, moved.train
+    origins, directions = image_rays(views.K[:1].double(), views.c2w[:1].double(), views.height, views.width)
+    moved_origins, moved_directions = image_rays(moved_views.K[:1].double(), moved_views.c2w[:1].double(), views.height, views.width)
+    centre = (box[:3].double() + box[3:].double()) / 2
+    points = origins + 2.5 * directions
+    assert torch.allclose(moved_origins + 2.5 * scale * moved_directions, (points - centre) * scale, atol=1e-5)
+    # the capture's coordinates are where they were: the similarity composes with the loader's
+    capture_point = torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    before = turntable.world_from_capture.double()[:3, :3] @ capture_point + turntable.world_from_capture.double()[:3, 3]
+    after = moved.world_from_capture.double()[:3, :3] @ capture_point + moved.world_from_capture.double()[:3, 3]
+    assert torch.allclose(after, (before - centre) * scale, atol=1e-5)
+    assert moved.near == pytest.approx(turntable.near * scale) and moved.far == pytest.approx(turntable.far * scale)
+
+
+def test_masks_that_hold_nothing_or_none_at_all_are_refused_by_name(turntable):
+    with pytest.raises(ValueError, match="data.object_box=visual_hull needs the capture's masks"):
+        visual_hull_box(dataclasses.replace(turntable.train, masks=None))
+    black = torch.zeros_like(turntable.train.masks)
+    with pytest.raises(ValueError, match="no point lies inside the masks"):
+        visual_hull_box(dataclasses.replace(turntable.train, masks=black))
+
+
+def test_rays_are_cut_to_the_bounds_and_a_miss_gets_an_empty_range():
+    space = SceneSpace(near=0.1, far=10.0, bounds=[-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
+    rays = space.rays(torch.tensor([[0.0, 0.0, -5.0], [0.0, 3.0, -5.0]]), torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]))
+    t_enter, t_exit = space.ray_range(rays)
+    assert torch.allclose(t_enter, torch.tensor([4.0, t_enter[1].item()])) and float(t_exit[0]) == pytest.approx(6.0)
+    assert float(t_exit[1]) == float(t_enter[1])  # misses the box: nothing to sample
+    again = SceneSpace.from_state(space.state())
+    assert torch.equal(again.bounds, space.bounds)
+    assert SceneSpace.from_state({**space.state(), "bounds": None}).bounds is None  # a checkpoint from before
+    with pytest.raises(ValueError, match="object_box"):
+        SceneSpace(bounds=[-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], contraction=Contraction())
+
+
+def test_the_datamodule_fits_the_scene_only_with_masks_in_use(turntable):
+    data = RayDataModule(scene=lambda: turntable, batch_size=256, masks="background", object_box="visual_hull")
+    data.setup()
+    assert data.space.bounds is not None and (data.space.bounds.abs() <= 1.0 + 1e-5).all()
+    with pytest.raises(ValueError, match="data.object_box=visual_hull needs the capture's masks in use"):
+        RayDataModule(scene=lambda: turntable, batch_size=256, masks="ignore", object_box="visual_hull").setup()
+    with pytest.raises(ValueError, match="data.contract=false"):
+        RayDataModule(scene=lambda: turntable, batch_size=256, masks="background", object_box="visual_hull", contract=True)
+    with pytest.raises(ValueError, match="data.object_box must be one of"):
+        RayDataModule(scene=lambda: turntable, batch_size=256, object_box="hull")

@@ -161,8 +161,18 @@ def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust:
     return model, {"kind": info["kind"], "config": config, "global_step": checkpoint.get("global_step")}
 
 
-def load_run_data(config: dict[str, Any]):
-    """The run's DataModule rebuilt from its resolved config and set up (its scene loaded)."""
+def load_run_data(config: dict[str, Any], model: Any = None):
+    """The run's DataModule rebuilt from its resolved config and set up (its scene loaded). With the run's ``model``,
+    the scene must be where the model learnt it: its similarity from the capture's coordinates (the loader's
+    normalisation, and an object's box fitted to its masks, data.object_box) as the checkpoint keeps it; ValueError
+    in one line otherwise (the capture's poses or masks changed since training)."""
     datamodule = instantiate(OmegaConf.create(config["data"]))
     datamodule.setup()
+    trained = getattr(getattr(model, "space", None), "world_from_capture", None)
+    loaded = getattr(getattr(datamodule, "space", None), "world_from_capture", None)
+    if trained is not None and loaded is not None and not torch.allclose(trained.detach().cpu().float(), loaded.cpu().float(), atol=1e-4, rtol=1e-4):
+        scene = config["data"].get("root") or "the run's scene"
+        raise ValueError(f"{scene} no longer loads where the checkpoint learnt it: its "
+                         "normalisation from the capture's coordinates differs (poses or masks changed since training); "
+                         "train again on the capture as it is")
     return datamodule

@@ -116,7 +116,7 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
         masks: keep each view's features inside its mask, where the views have masks.
         max_features: SIFT features kept a view.
         neighbours: the views each view is matched with beyond :data:`ALL_PAIRS_UP_TO` views (:func:`pose_pairs`).
-        seed: the seed of the matches' RANSAC.
+        seed: the seed of the matches' RANSAC and of the triangulator.
     A view in no verified pair (no features: an empty mask, a blank photo) is left out; where fewer than 2 views
     matched, no points come back.
     """
@@ -148,11 +148,12 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
             return SparsePoints.mapped(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)), \
                 {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, "points": 0,
                  "views_matched": len(kept)}
-        # COLMAP's random generator is the process's: seeded here, not left where an earlier call put it, so that the
-        # same views give the same points (tested)
-        pycolmap.set_random_seed(seed)
+        # the triangulator's own sampling seeded, not left to COLMAP's default, so that the same views give the same
+        # points (tested)
+        options = pycolmap.IncrementalPipelineOptions()
+        options.random_seed = seed
         model = pycolmap.triangulate_points(posed_model(database, views, names, kept), database, folder / "images", folder / "sparse",
-                                            options=pycolmap.IncrementalPipelineOptions())
+                                            options=options)
         seconds["triangulation"] = time.perf_counter() - started
         positions, colours = sparse_points(model)
         statistics = model_statistics(model)

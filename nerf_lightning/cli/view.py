@@ -33,7 +33,7 @@ def view(cfg: DictConfig) -> FieldViewer:
     try:
         model, info = load_model(cfg.ckpt_path, cfg.device, trust=cfg.trust_checkpoint)
         require(model, RendersCamera, "nerf-view", "a model that renders a camera")
-        datamodule = load_run_data(info["config"])
+        datamodule = load_run_data(info["config"], model)
         viewer = FieldViewer(server, model, datamodule.scene.train, datamodule.render_views, cfg.output_dir,
                              moving_frame_s=cfg.view.moving_frame_s, max_resolution=cfg.view.max_resolution,
                              max_splats=cfg.view.max_splats)

@@ -10,8 +10,8 @@ a hash grid's cells, or a NeRF's samples, are all spent on the object.
   frame), and not all of them (a rough mask that cuts a little off the object in one photo would cut the object). The kept
   points' box, widened by ``margin`` of its size a side and by one grid cell, is the object's box.
 - :func:`fit_scene_to_box`: the similarity that centres the box on the origin and scales its longest side to 2,
-  applied to every split's cameras, the true depths, the sparse points, near/far and ``world_from_capture`` (so
-  renders and meshes still map back to the capture's coordinates). The box becomes a box inside [-1, 1]^3, which a
+  applied to every split's cameras, the true depths, the sparse points and ``world_from_capture`` (so renders and
+  meshes still map back to the capture's coordinates) and near/far. The box becomes a box inside [-1, 1]^3, which a
   preset's field box (``model.field.aabb=[-1, -1, -1, 1, 1, 1]``) then holds.
 """
 
@@ -28,8 +28,7 @@ from nerf_lightning.data.scene import Scene, Views
 MIN_SEEING = 3
 
 
-def visual_hull_box(views: Views, resolution: int = 96, agree: float = 0.9, margin: float = 0.1,
-                    chunk: int = 65536) -> torch.Tensor:
+def visual_hull_box(views: Views, resolution: int = 96, agree: float = 0.9, margin: float = 0.1) -> torch.Tensor:
     """(6,) float32 box (xmin, ymin, zmin, xmax, ymax, zmax) in the views' world of the masks' visual hull.
 
     Args:
@@ -51,6 +50,7 @@ def visual_hull_box(views: Views, resolution: int = 96, agree: float = 0.9, marg
     grid = torch.stack(torch.meshgrid(ticks, ticks, ticks, indexing="ij"), dim=-1).reshape(-1, 3)
     w2c = torch.linalg.inv(views.c2w.double())
     K = views.K.double()
+    chunk = max(1024, 2**22 // len(views))  # points projected at once: a few hundred MB whatever the views' count
     seen = torch.zeros(len(grid), dtype=torch.int32)
     inside = torch.zeros(len(grid), dtype=torch.int32)
     for start in range(0, len(grid), chunk):
@@ -104,7 +104,8 @@ def fit_scene_to_box(scene: Scene, box: torch.Tensor) -> tuple[Scene, torch.Tens
     if scene.points is not None:
         points = SparsePoints.mapped(scene.points.positions.double().numpy(), scene.points.colours.numpy(), transform)
     before = torch.eye(4, dtype=torch.float64) if scene.world_from_capture is None else scene.world_from_capture.double()
+    fitted = torch.cat([box[:3].double() * scale + transform[:3, 3], box[3:].double() * scale + transform[:3, 3]])
+    # near/far scaled as they were: every ray's range is cut to the box (SceneSpace.bounds), for any camera
     moved = dataclasses.replace(scene, splits=splits, near=scene.near * scale, far=scene.far * scale, points=points,
                                 world_from_capture=(transform @ before).float())
-    fitted = torch.cat([box[:3].double() * scale + transform[:3, 3], box[3:].double() * scale + transform[:3, 3]]).float()
-    return moved, fitted
+    return moved, fitted.float()

@@ -4,6 +4,7 @@ held-out views and render paths. Subclasses say only what a training step gets (
 from __future__ import annotations
 
 import inspect
+import logging
 from collections.abc import Callable
 
 import torch
@@ -17,6 +18,8 @@ from nerf_lightning.data.object_box import fit_scene_to_box, visual_hull_box
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.geometry.paths import orbit_path, spiral_path
 from nerf_lightning.geometry.space import SceneSpace
+
+log = logging.getLogger(__name__)
 
 
 
@@ -118,13 +121,23 @@ class SceneDataModule(StepBatchesDataModule):
         except ValueError:  # a callable without a signature: let the call say what is wrong
             pass
         scene = self.load_scene(*arguments)
+        if self.object_box is not None and scene.train.masks is None:
+            raise ValueError(f"data.object_box={self.object_box} needs an object's masks, and {scene.source} has none: "
+                             "train without it (data.object_box=null, or a preset other than nerfacto_object_cpu)")
         self.mask_mode = resolve_mode(self.masks, scene.train.masks is not None, scene.source)
         bounds = None
         if self.object_box is not None:
             if self.mask_mode is None:
-                raise ValueError(f"data.object_box={self.object_box} needs the capture's masks in use (data.masks=background or "
-                                 f"exclude), got data.masks={self.masks}" + ("" if scene.train.masks is not None else f" and {scene.source} has none"))
-            scene, bounds = fit_scene_to_box(scene, visual_hull_box(scene.train))
+                raise ValueError(f"data.object_box={self.object_box} needs the capture's masks in use: set data.masks=background "
+                                 f"(or exclude), not {self.masks}")
+            box = visual_hull_box(scene.train)
+            cameras = scene.train.c2w[:, :3, 3]
+            cube = float((cameras.max(0).values - cameras.min(0).values).clamp(min=1e-9).prod())
+            if float((box[3:] - box[:3]).prod()) > 0.5 * cube:
+                log.warning("data.object_box: the masks' visual hull fills most of the space the cameras stand in (%s): are "
+                            "these masks an object's outline? (data.masks=exclude masks often mark what to leave out)",
+                            [round(value, 2) for value in box.tolist()])
+            scene, bounds = fit_scene_to_box(scene, box)
         self.scene = scene
         self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract, bounds=bounds)
 

@@ -186,8 +186,9 @@ class SceneSpace(nn.Module):
         return torch.maximum(t_enter, box_enter), torch.minimum(t_exit, box_exit)
 
     def check_box(self, aabb: torch.Tensor, key: str) -> None:
-        """A field's or grid's field-space box must hold a contracted scene's whole cube, and in NDC all that the
-        training rays reach (:attr:`NDC.reach`); ValueError naming ``key`` and the box to set otherwise."""
+        """A field's or grid's field-space box must hold a contracted scene's whole cube, in NDC all that the
+        training rays reach (:attr:`NDC.reach`), and an object's :attr:`bounds`; ValueError naming ``key`` and the
+        box to set otherwise."""
         box = aabb.detach().cpu().float()
 
         def holds(needed: torch.Tensor, tolerance: float) -> bool:
@@ -200,6 +201,10 @@ class SceneSpace(nn.Module):
                 raise ValueError(f"{key} is {box.tolist()}, but the training cameras' rays in NDC (data.ndc=true) reach "
                                  f"|x| = {reach_x:.2f} and |y| = {reach_y:.2f} from the near plane (z = -1) to infinity (z = 1): "
                                  f"what they see outside the box would be left out. Set {key}=[-{x}, -{y}, -1.0, {x}, {y}, 1.0] or wider")
+        if self.bounds is not None and not holds(self.bounds.detach().cpu().float(), 1e-4):
+            raise ValueError(f"{key} is {box.tolist()}, but the object's box (data.object_box) is "
+                             f"{[round(value, 3) for value in self.bounds.tolist()]}: what lies outside would be left out. "
+                             f"Set {key}=[-1.0, -1.0, -1.0, 1.0, 1.0, 1.0] (the fitted box lies inside it)")
         if self.contraction is not None and not holds(torch.tensor(self.contraction.bounds), 1e-6):
             raise ValueError(f"{key} is {box.tolist()}, but a contracted scene (data.contract=true) fills the cube "
                              f"{list(self.contraction.bounds)}: set {key}={list(self.contraction.bounds)}")

@@ -55,7 +55,7 @@ def views_to_evaluate(model: RendersCamera, config: dict, split: str = "test", r
     ``split`` if it names one, else all); the masks mode training used (:mod:`~nerf_lightning.data.masks`) and the
     scene's background colour, with which they are scored."""
     if not root:
-        data = load_run_data(config)
+        data = load_run_data(config, model)
         return data.scene.held_out(split), data.mask_mode, data.scene.background
     scene = second_capture(model, config, root)
     mode = resolve_mode(config["data"].get("masks"), scene.train.masks is not None, scene.source)

@@ -86,7 +86,7 @@ def render_camera_path(model: RendersCamera, config: dict, output_dir: str | Pat
         views, file_fps = read_camera_path(path, world_from_capture, dataparser_transforms)
         fps, name = file_fps or fps, Path(path).name
     else:
-        views, name = load_run_data(config).render_views(path, frames), f"{path} path"
+        views, name = load_run_data(config, model).render_views(path, frames), f"{path} path"
     views = views.scaled(scale)
     written = write_path_renders(model, views, Path(output_dir), fps, depth_colormap, desc=name)
     log.info("wrote %d %dx%d frames of %s to %s", len(views), views.width, views.height, name, output_dir)

@@ -22,7 +22,7 @@ equal), without a tensor of (footprint, pixel) pairs:
 
 Transmittances and sums are carried in float64 inside the loops (a pixel may take hundreds of footprints, and the
 backward pass divides by 1 - alpha), the outputs are in the inputs' dtype. The Gaussian's fall-off exp(-sigma) is
-a table step and a short polynomial written into the loops (:func:`fade`, within 2e-9 of exp), the four features (colour and depth) and
+a table step and a short polynomial written into the loops (:func:`fade`, within 3e-9 of exp), the four features (colour and depth) and
 a footprint's gradient sums are held in registers, and the loops are compiled with fast-math: within the tests' 1e-5
 of the reference, a pair costs a few arithmetic operations and no call.
 
@@ -163,10 +163,10 @@ FADE_TABLE = np.exp(-np.arange(FADE_STEPS * 8 + 2) / FADE_STEPS)
 def fade(sigma: float) -> float:
     """exp(-sigma) for 0 <= sigma < 8 (the loops ask no more: a fade limit is at most log(255) plus a hair): the
     table's exp(-i / 64) at the step below, times the degree-3 Taylor polynomial of exp(-r) for the remainder
-    r < 1/64, within 2e-9 of exp. A short chain of arithmetic and one load from a table in the first-level cache,
+    r < 1/64, within 3e-9 of exp. A short chain of arithmetic and one load from a table in the first-level cache,
     where a call to the library's exp, or a polynomial over the whole range, takes several times as long a pair."""
-    scaled = sigma * FADE_STEPS
-    step = int(scaled)
+    scaled = min(sigma, 8.0) * FADE_STEPS  # exp(-8) past the table's end, not off it
+    step = min(max(int(scaled), 0), FADE_STEPS * 8)  # a NaN sigma stays on the table too, and gives NaN, as exp would
     r = (scaled - step) * (1.0 / FADE_STEPS)
     return FADE_TABLE[step] * (1.0 - r * (1.0 - r * (0.5 - r * (1.0 / 6.0))))
 
@@ -318,7 +318,8 @@ def sum_slots(order, slot_offsets, slots, slot_grads, out):
 def fade_limits(opacities: np.ndarray) -> np.ndarray:
     """(M,) float64 for (M,) opacities: a sigma past which o exp(-sigma) is surely under 1/255 (log(255 o), plus a
     margin for rounding), so that the loops skip those pixels without an exp; the exact alpha test follows for the rest."""
-    return np.log(np.maximum(opacities.astype(np.float64) / MIN_ALPHA, 1.0)) + 1e-6
+    # opacities are at most 1 (a limit of log(255)); the cap keeps any other input on fade's table
+    return np.minimum(np.log(np.maximum(opacities.astype(np.float64) / MIN_ALPHA, 1.0)) + 1e-6, 7.9)
 
 
 def _numpy(tensor: torch.Tensor) -> np.ndarray:

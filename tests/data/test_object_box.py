@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import types
 
 import pytest
 import torch
@@ -80,6 +81,37 @@ def test_rays_are_cut_to_the_bounds_and_a_miss_gets_an_empty_range():
         SceneSpace(bounds=[-1.0, -1.0, -1.0, 1.0, 1.0, 1.0], contraction=Contraction())
 
 
+def test_a_field_box_that_does_not_hold_the_object_is_refused_by_key():
+    space = SceneSpace(near=0.1, far=10.0, bounds=[-0.5, -1.0, -0.3, 0.5, 1.0, 0.3])
+    space.check_box(torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]), "model.field.aabb")
+    with pytest.raises(ValueError, match=r"model.field.aabb is .* the object's box"):
+        space.check_box(torch.tensor([-0.4, -0.4, -0.4, 0.4, 0.4, 0.4]), "model.field.aabb")
+
+
+def test_evaluation_refuses_a_scene_that_no_longer_loads_where_the_model_learnt_it(turntable, make_config):
+    from omegaconf import OmegaConf
+
+    from nerf_lightning.checkpoints import load_run_data
+
+    cfg = make_config("experiment=nerfacto_object_cpu", "data=turntable")
+    config = {"data": OmegaConf.to_container(cfg.data, resolve=True)}
+    config["data"]["scene"] = {"_target_": "tests.data.test_object_box.cached_turntable", "_partial_": True}
+    _CACHED.append(turntable)
+    data = load_run_data(config)
+    same = types.SimpleNamespace(space=data.space)
+    assert load_run_data(config, same).space.bounds is not None
+    moved = types.SimpleNamespace(space=SceneSpace(world_from_capture=torch.eye(4)))
+    with pytest.raises(ValueError, match="no longer loads where the checkpoint learnt it"):
+        load_run_data(config, moved)
+
+
+_CACHED: list = []
+
+
+def cached_turntable():
+    return _CACHED[-1]
+
+
 def test_the_datamodule_fits_the_scene_only_with_masks_in_use(turntable):
     data = RayDataModule(scene=lambda: turntable, batch_size=256, masks="background", object_box="visual_hull")
     data.setup()
@@ -90,3 +122,6 @@ def test_the_datamodule_fits_the_scene_only_with_masks_in_use(turntable):
         RayDataModule(scene=lambda: turntable, batch_size=256, masks="background", object_box="visual_hull", contract=True)
     with pytest.raises(ValueError, match="data.object_box must be one of"):
         RayDataModule(scene=lambda: turntable, batch_size=256, object_box="hull")
+    unmasked = dataclasses.replace(turntable, splits={name: dataclasses.replace(views, masks=None) for name, views in turntable.splits.items()})
+    with pytest.raises(ValueError, match="needs an object's masks, and .* has none"):
+        RayDataModule(scene=lambda: unmasked, batch_size=256, masks="background", object_box="visual_hull").setup()

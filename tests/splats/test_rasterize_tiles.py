@@ -213,3 +213,5 @@ def test_the_fall_off_is_exp_where_the_loops_ask_it() -> None:
     sigmas = np.linspace(0.0, 6.0, 100_001)
     fades = np.array([fade(sigma) for sigma in sigmas[::97]])
     np.testing.assert_allclose(fades, np.exp(-sigmas[::97]), rtol=1e-8, atol=0.0)
+    # past the table (an opacity over 1 given to TileRasterize) it stays on it; a NaN sigma gives NaN, as exp does
+    assert 0.0 <= fade(100.0) < 1e-3 and np.isnan(fade(float("nan")))

@@ -130,14 +130,12 @@ class SceneDataModule(StepBatchesDataModule):
             if self.mask_mode is None:
                 raise ValueError(f"data.object_box={self.object_box} needs the capture's masks in use: set data.masks=background "
                                  f"(or exclude), not {self.masks}")
-            box = visual_hull_box(scene.train)
-            cameras = scene.train.c2w[:, :3, 3]
-            cube = float((cameras.max(0).values - cameras.min(0).values).clamp(min=1e-9).prod())
-            if float((box[3:] - box[:3]).prod()) > 0.5 * cube:
-                log.warning("data.object_box: the masks' visual hull fills most of the space the cameras stand in (%s): are "
-                            "these masks an object's outline? (data.masks=exclude masks often mark what to leave out)",
-                            [round(value, 2) for value in box.tolist()])
-            scene, bounds = fit_scene_to_box(scene, box)
+            covered = int(scene.train.masks.sum()) / scene.train.masks.numel()
+            if covered > 0.9:  # the hull is then only where the photos' frames overlap
+                log.warning("data.object_box: the masks cover %.0f%% of the photos: are they an object's outline? "
+                            "(data.masks=exclude masks often mark what to leave out); the box is where the photos overlap",
+                            100 * covered)
+            scene, bounds = fit_scene_to_box(scene, visual_hull_box(scene.train))
         self.scene = scene
         self.space = SceneSpace.from_scene(self.scene, ndc=self.ndc, contract=self.contract, bounds=bounds)
 

@@ -112,6 +112,18 @@ def cached_turntable():
     return _CACHED[-1]
 
 
+def test_masks_that_cover_the_photos_warn_that_they_are_no_object_outline(turntable, caplog):
+    data = RayDataModule(scene=lambda: turntable, batch_size=256, masks="background", object_box="visual_hull")
+    with caplog.at_level("WARNING"):
+        data.setup()
+    assert "are they an object's outline" not in caplog.text
+    whole = dataclasses.replace(turntable, splits={name: dataclasses.replace(views, masks=torch.ones_like(views.masks))
+                                                   for name, views in turntable.splits.items()})
+    with caplog.at_level("WARNING"):
+        RayDataModule(scene=lambda: whole, batch_size=256, masks="exclude", object_box="visual_hull").setup()
+    assert "are they an object's outline" in caplog.text
+
+
 def test_the_datamodule_fits_the_scene_only_with_masks_in_use(turntable):
     data = RayDataModule(scene=lambda: turntable, batch_size=256, masks="background", object_box="visual_hull")
     data.setup()

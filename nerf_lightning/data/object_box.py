@@ -21,6 +21,7 @@ import dataclasses
 
 import torch
 
+from nerf_lightning.data.formats.shared import apply_similarity
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.scene import Scene, Views
 
@@ -87,11 +88,9 @@ def box_similarity(box: torch.Tensor) -> torch.Tensor:
 
 
 def _moved(views: Views, transform: torch.Tensor) -> Views:
-    scale = float(transform[0, 0])
-    c2w = views.c2w.double().clone()
-    c2w[:, :3, 3] = c2w[:, :3, 3] * scale + transform[:3, 3]
-    depth = None if views.depth is None else views.depth * scale
-    return dataclasses.replace(views, c2w=c2w.to(views.c2w.dtype), depth=depth)
+    """The views under the similarity ``transform`` (4, 4): cameras moved, true depths scaled."""
+    depth = None if views.depth is None else views.depth * float(transform[0, 0])
+    return dataclasses.replace(views, c2w=apply_similarity(transform, views.c2w).to(views.c2w.dtype), depth=depth)
 
 
 def fit_scene_to_box(scene: Scene, box: torch.Tensor) -> tuple[Scene, torch.Tensor]:

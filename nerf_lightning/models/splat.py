@@ -15,11 +15,11 @@ from typing import Any
 import torch
 from torch.profiler import record_function
 
+from nerf_lightning.capture.choices import COLMAP_EXTRA
 from nerf_lightning.data.batches import ViewBatch
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
-from nerf_lightning.capture.choices import COLMAP_EXTRA
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace

@@ -3,12 +3,14 @@ summary of everything the check wrote.
 
     python scripts/gpu_check_tools.py scale SUITE ROW_ID MINUTES OUT_SUITE [--smoke]   # prints the new row's id
     python scripts/gpu_check_tools.py summary OUT WORK                                 # writes OUT/summary.txt
+    python scripts/gpu_check_tools.py data ../shared/data .gpu_data                    # what the lease carries
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import xml.etree.ElementTree as ElementTree
 from pathlib import Path
@@ -192,6 +194,26 @@ def summary(out: Path, work: Path) -> str:
     return text
 
 
+def carried_data(source: Path, target: Path, train_views: int = 25, val_views: int = 5) -> None:
+    """The data a 64 MiB lease carries, from ``source`` (../shared/data) into ``target``: lego at 800x800 with every
+    4th of its train views (25) and the first 5 val views, fox whole, moldGoldCape's images_4, masks_4 and poses."""
+    lego, lego_out = source / "nerf_synthetic/lego", target / "nerf_synthetic/lego"
+    for split, count in (("train", train_views), ("val", val_views)):
+        meta = json.loads((lego / f"transforms_{split}.json").read_text())
+        step = max(1, len(meta["frames"]) // count)
+        meta["frames"] = meta["frames"][::step][:count]
+        for frame in meta["frames"]:
+            image = Path(frame["file_path"] + ".png")
+            (lego_out / image.parent).mkdir(parents=True, exist_ok=True)
+            shutil.copy(lego / image, lego_out / image)
+        (lego_out / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+    shutil.copytree(source / "nerfstudio/fox", target / "nerfstudio/fox", dirs_exist_ok=True)
+    cape, cape_out = source / "masked_objects/moldGoldCape", target / "masked_objects/moldGoldCape"
+    for name in ("images_4", "masks_4"):
+        shutil.copytree(cape / name, cape_out / name, dirs_exist_ok=True)
+    shutil.copy(cape / "poses_bounds.npy", cape_out / "poses_bounds.npy")
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -204,8 +226,13 @@ def main(argv: list[str] | None = None) -> None:
     summarising = commands.add_parser("summary")
     summarising.add_argument("out", type=Path)
     summarising.add_argument("work", type=Path)
+    carrying = commands.add_parser("data")
+    carrying.add_argument("source", type=Path)
+    carrying.add_argument("target", type=Path)
     args = parser.parse_args(argv)
-    if args.command == "scale":
+    if args.command == "data":
+        carried_data(args.source, args.target)
+    elif args.command == "scale":
         print(scale(args.suite, args.row_id, args.minutes, args.out_suite, args.smoke))
     else:
         sys.stdout.write(summary(args.out, args.work))

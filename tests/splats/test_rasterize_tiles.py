@@ -29,9 +29,11 @@ def drawn(g: dict[str, torch.Tensor], rasteriser, height: int, width: int, antia
 
 
 def assert_equal_to_dense(g: dict[str, torch.Tensor], height: int, width: int, antialiased: bool = False,
-                          mask: torch.Tensor | None = None, K: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """Values and the gradients of one loss over rgb, accumulation and depth, tiles against dense, to 1e-5."""
-    tiles, dense = drawn(g, rasterize_tiles, height, width, antialiased, K), drawn(g, rasterize_dense, height, width, antialiased, K)
+                          mask: torch.Tensor | None = None, K: torch.Tensor | None = None,
+                          rasteriser=rasterize_tiles) -> dict[str, torch.Tensor]:
+    """Values and the gradients of one loss over rgb, accumulation and depth, ``rasteriser`` (the tiles) against
+    dense, to 1e-5."""
+    tiles, dense = drawn(g, rasteriser, height, width, antialiased, K), drawn(g, rasterize_dense, height, width, antialiased, K)
     for key in ("rgb", "accumulation"):
         torch.testing.assert_close(tiles[key], dense[key], atol=1e-5, rtol=1e-5)
     covered = dense["accumulation"] > 1e-3
@@ -89,9 +91,10 @@ def stack(n: int, opacity: float, spread: float = 0.0, seed: int = 0) -> Project
     return Projection(torch.arange(n), means2d, conics, opacities, depths, extents)
 
 
-def assert_projection_gradients_equal(projection: Projection, colours: torch.Tensor, height: int = 20, width: int = 24) -> dict:
+def assert_projection_gradients_equal(projection: Projection, colours: torch.Tensor, height: int = 20, width: int = 24,
+                                      rasteriser=rasterize_tiles) -> dict:
     out = {}
-    for name, rasteriser in (("tiles", rasterize_tiles), ("dense", rasterize_dense)):
+    for name, rasteriser in (("tiles", rasteriser), ("dense", rasterize_dense)):
         drawn_out = rasteriser(projection, colours, height, width, BACKGROUND)
         loss = drawn_out["rgb"].sum() + 0.5 * drawn_out["accumulation"].sum() + 0.1 * drawn_out["depth"].sum()
         inputs = [projection.means2d, projection.conics, projection.opacities, projection.depths, colours]
@@ -149,10 +152,15 @@ def test_float64_inputs_are_drawn_in_float64():
     torch.testing.assert_close(out["rgb"], rasterize(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())["rgb"])
 
 
-def test_auto_takes_tiles_on_a_cpu_and_pytorch_elsewhere():
+def test_auto_takes_tiles_on_a_cpu_triton_on_cuda_and_pytorch_elsewhere(monkeypatch):
     assert rasterizers.choose_rasterizer("cpu") == "tiles"
-    assert rasterizers.choose_rasterizer("cuda") == rasterizers.choose_rasterizer("mps") == "pairs"
+    assert rasterizers.choose_rasterizer("mps") == rasterizers.choose_rasterizer("mps", "tiles") == "pairs"
     assert rasterizers.choose_rasterizer("cpu", "pairs") == "pairs"
+    monkeypatch.setattr(rasterizers, "_triton_ready", True)
+    assert rasterizers.choose_rasterizer("cuda") == rasterizers.choose_rasterizer("cuda", "tiles") == "triton"
+    assert rasterizers.choose_rasterizer("cuda", "pairs") == "pairs"
+    monkeypatch.setattr(rasterizers, "_triton_ready", False)  # Triton missing or failing there: PyTorch draws
+    assert rasterizers.choose_rasterizer("cuda") == "pairs"
     with pytest.raises(ValueError, match="model.rasterizer must be one of auto, tiles, pairs"):
         rasterizers.choose_rasterizer("cpu", "numba")
 
@@ -195,6 +203,17 @@ def test_without_numba_one_warning_then_the_pytorch_rasteriser(monkeypatch):
     said = [w for w in caught if "tile rasteriser is unavailable" in str(w.message)]
     assert len(said) == 1 and "pip install numba" in str(said[0].message)
     torch.testing.assert_close(out["rgb"], drawn(g, rasterize_dense, 20, 24)["rgb"], atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="where CUDA is, the GPU tile rasteriser may run")
+def test_on_cuda_without_a_gpu_rasteriser_one_warning_then_the_pytorch_rasteriser(monkeypatch):
+    monkeypatch.setattr(rasterizers, "_triton_ready", None)
+    monkeypatch.setattr(rasterizers, "_triton", None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert rasterizers.choose_rasterizer("cuda") == rasterizers.choose_rasterizer("cuda", "tiles") == "pairs"
+    said = [w for w in caught if "GPU tile rasteriser is unavailable" in str(w.message)]
+    assert len(said) == 1
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -1,0 +1,295 @@
+"""The rasteriser's GPU fast path: footprints binned into tiles and composited by Triton kernels, forward and
+backward, as 3D Gaussian splatting and gsplat do it in CUDA.
+
+The same values and gradients as :func:`~nerf_lightning.splats.rasterize_dense.rasterize_dense` (the tests hold them
+equal), without a tensor of (footprint, pixel) pairs, and the same steps as the CPU's
+:mod:`~nerf_lightning.splats.rasterize_tiles`:
+
+1. **Binning** (:func:`bin_footprints`, PyTorch on the device): the footprints sorted nearest first (a stable sort,
+   ties by index, as the reference's), packed a row each in that order; each lists the ``TILE`` x ``TILE`` tiles its
+   pixel box touches (one ``repeat_interleave``), and one stable sort by tile leaves every tile's list nearest first.
+2. **Forward** (``_composite``): a program a tile, a lane a pixel. The tile takes its footprints nearest first, one at
+   a time for all its pixels: alpha = min(0.999, o exp(-sigma)), pairs under 1/255 skipped, a pixel done before the
+   footprint that would take its transmittance to 1e-4 or below; the tile stops when all its pixels are done. Each
+   pixel keeps its last transmittance and the tile-list position where it stopped.
+3. **Backward** (``_composite_backward``): each tile walks its list back to front from the saved transmittance
+   (T_i = T_i+1 / (1 - alpha_i)), carrying the weighted gradient sum of the footprints behind, so that
+   d loss / d alpha_i = T_i g_i - (sum_{j > i} w_j g_j) / (1 - alpha_i). A footprint's gradient from one tile is
+   summed over the tile's pixels (a reduction of fixed shape) into the footprint's own slot; ``_sum_slots`` then adds a
+   footprint's slots in tile order. No two programs add into one number (no atomics), so the same input gives the
+   same gradients bit for bit.
+
+Sums are carried in the inputs' dtype (float32 in training). Triton compiles the kernels for the GPU the first time
+they run; on CPU tensors they run in Triton's interpreter (numpy), which is how the tests check them without a GPU:
+far too slow to draw with, so :mod:`~nerf_lightning.splats.rasterizers` takes this path on CUDA only.
+"""
+
+from __future__ import annotations
+
+import os
+
+import torch
+import triton
+import triton.language as tl
+
+from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
+from nerf_lightning.splats.rasterize import pixel_boxes
+
+# a tile's side in pixels (3DGS's and gsplat's 16): a program's 256 lanes
+TILE = 16
+# what the kernels draw a footprint with: its colour (3) and its depth, the last, by which the footprints are ordered
+FEATURES = 4
+# a packed footprint's row: means2d (2), conic (3), opacity, features (4), pixel box (4: first and last column, first
+# and last row), two unused (16 numbers: whole cache sectors)
+PACKED = 16
+# a footprint's gradient from one tile: means2d (2), conic (3), opacity, features (4)
+GRADIENTS = 10
+# footprints a program of _sum_slots adds up
+SUM_BLOCK = 128
+
+
+def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumulation, transmittance, stop,
+               TILE: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr, MIN_TRANSMITTANCE: tl.constexpr):
+    """Forward: one program a tile. Written: shaded (H * W, 4), accumulation, transmittance (H * W,) and stop (H * W,)
+    int64, the tile-list position where the pixel was done (its tile's end where it never was)."""
+    t = tl.program_id(0)
+    lane = tl.arange(0, TILE * TILE)
+    column = (t % tiles_x) * TILE + lane % TILE
+    row = (t // tiles_x) * TILE + lane // TILE
+    inside = (column < width) & (row < height)
+    u = column.to(packed.dtype.element_ty) + 0.5
+    v = row.to(packed.dtype.element_ty) + 0.5
+    start = tl.load(offsets + t)
+    end = tl.load(offsets + t + 1)
+    left = tl.full([TILE * TILE], 1.0, tl.float64)
+    s0 = tl.zeros([TILE * TILE], tl.float64)
+    s1 = tl.zeros([TILE * TILE], tl.float64)
+    s2 = tl.zeros([TILE * TILE], tl.float64)
+    s3 = tl.zeros([TILE * TILE], tl.float64)
+    weights = tl.zeros([TILE * TILE], tl.float64)
+    ends = tl.zeros([TILE * TILE], tl.int64) + end
+    active = inside
+    k = start
+    go = start < end
+    while go:
+        footprint = packed + tl.load(entries + k).to(tl.int64) * 16
+        mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
+        a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
+        o = tl.load(footprint + 5)
+        f0, f1, f2, f3 = tl.load(footprint + 6), tl.load(footprint + 7), tl.load(footprint + 8), tl.load(footprint + 9)
+        in_box = (u >= tl.load(footprint + 10)) & (u <= tl.load(footprint + 11) + 1.0) \
+            & (v >= tl.load(footprint + 12)) & (v <= tl.load(footprint + 13) + 1.0)
+        dx = u - mx
+        dy = v - my
+        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+        alpha = tl.minimum(o * tl.exp(-sigma), MAX_ALPHA)
+        take = active & in_box & (sigma >= 0.0) & (alpha >= MIN_ALPHA)
+        alpha = alpha.to(tl.float64)
+        after = left * (1.0 - alpha)
+        finish = take & (after <= MIN_TRANSMITTANCE)
+        ends = tl.where(finish, k, ends)
+        active = active & (finish == 0)
+        use = take & (finish == 0)
+        weight = tl.where(use, alpha * left, 0.0)
+        s0 += weight * f0
+        s1 += weight * f1
+        s2 += weight * f2
+        s3 += weight * f3
+        weights += weight
+        left = tl.where(use, after, left)
+        k += 1
+        go = (k < end) & (tl.max(active.to(tl.int32), axis=0) > 0)
+    pixel = row * width + column
+    tl.store(shaded + pixel * 4 + 0, s0.to(packed.dtype.element_ty), mask=inside)
+    tl.store(shaded + pixel * 4 + 1, s1.to(packed.dtype.element_ty), mask=inside)
+    tl.store(shaded + pixel * 4 + 2, s2.to(packed.dtype.element_ty), mask=inside)
+    tl.store(shaded + pixel * 4 + 3, s3.to(packed.dtype.element_ty), mask=inside)
+    tl.store(accumulation + pixel, weights.to(packed.dtype.element_ty), mask=inside)
+    tl.store(transmittance + pixel, left, mask=inside)
+    tl.store(stop + pixel, ends, mask=inside)
+
+
+def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_x, transmittance, stop, grad_shaded,
+                        grad_accumulation, slot_grads, TILE: tl.constexpr, MAX_ALPHA: tl.constexpr,
+                        MIN_ALPHA: tl.constexpr):
+    """Backward: one program a tile, back to front. Written: slot_grads (E, 10), at each tile-list entry's slot
+    (``slot_of``), its footprint's gradient from this tile's pixels: d means2d (2), d conic (3), d opacity, d features
+    (4). Entries past every pixel's stop keep the zeros they were given."""
+    t = tl.program_id(0)
+    lane = tl.arange(0, TILE * TILE)
+    column = (t % tiles_x) * TILE + lane % TILE
+    row = (t // tiles_x) * TILE + lane // TILE
+    inside = (column < width) & (row < height)
+    pixel = row * width + column
+    u = column.to(packed.dtype.element_ty) + 0.5
+    v = row.to(packed.dtype.element_ty) + 0.5
+    start = tl.load(offsets + t)
+    ends = tl.load(stop + pixel, mask=inside, other=0)
+    left = tl.load(transmittance + pixel, mask=inside, other=1.0)
+    g0 = tl.load(grad_shaded + pixel * 4 + 0, mask=inside, other=0.0)
+    g1 = tl.load(grad_shaded + pixel * 4 + 1, mask=inside, other=0.0)
+    g2 = tl.load(grad_shaded + pixel * 4 + 2, mask=inside, other=0.0)
+    g3 = tl.load(grad_shaded + pixel * 4 + 3, mask=inside, other=0.0)
+    g4 = tl.load(grad_accumulation + pixel, mask=inside, other=0.0)
+    behind = tl.zeros([TILE * TILE], tl.float64)  # sum over the footprints behind of w_j g_j
+    last = tl.max(tl.where(inside, ends, start), axis=0)  # no pixel took a footprint from here on
+    for j in range(0, last - start):
+        k = last - 1 - j
+        footprint = packed + tl.load(entries + k).to(tl.int64) * 16
+        mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
+        a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
+        o = tl.load(footprint + 5)
+        f0, f1, f2, f3 = tl.load(footprint + 6), tl.load(footprint + 7), tl.load(footprint + 8), tl.load(footprint + 9)
+        in_box = (u >= tl.load(footprint + 10)) & (u <= tl.load(footprint + 11) + 1.0) \
+            & (v >= tl.load(footprint + 12)) & (v <= tl.load(footprint + 13) + 1.0)
+        dx = u - mx
+        dy = v - my
+        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+        falloff = tl.exp(-sigma)
+        alpha = tl.minimum(o * falloff, MAX_ALPHA)
+        take = inside & in_box & (k < ends) & (sigma >= 0.0) & (alpha >= MIN_ALPHA)
+        alpha = alpha.to(tl.float64)
+        keep = 1.0 / (1.0 - alpha)
+        before = left * keep
+        weight = alpha * before
+        grad_weight = g4 + g0 * f0 + g1 * f1 + g2 * f2 + g3 * f3
+        grad_alpha = before * grad_weight - behind * keep
+        behind += tl.where(take, weight * grad_weight, 0.0)
+        left = tl.where(take, before, left)
+        unclamped = take & (o * falloff <= MAX_ALPHA)  # the clamp passes no gradient
+        grad_sigma = tl.where(unclamped, -alpha * grad_alpha, 0.0)
+        dx, dy = dx.to(tl.float64), dy.to(tl.float64)
+        slot = slot_grads + tl.load(slot_of + k) * 10
+        tl.store(slot + 0, -tl.sum(grad_sigma * (a * dx + b * dy), axis=0))
+        tl.store(slot + 1, -tl.sum(grad_sigma * (c * dy + b * dx), axis=0))
+        tl.store(slot + 2, tl.sum(grad_sigma * 0.5 * dx * dx, axis=0))
+        tl.store(slot + 3, tl.sum(grad_sigma * dx * dy, axis=0))
+        tl.store(slot + 4, tl.sum(grad_sigma * 0.5 * dy * dy, axis=0))
+        tl.store(slot + 5, tl.sum(tl.where(unclamped, falloff * grad_alpha, 0.0), axis=0))
+        drawn = tl.where(take, weight, 0.0)
+        tl.store(slot + 6, tl.sum(drawn * g0, axis=0))
+        tl.store(slot + 7, tl.sum(drawn * g1, axis=0))
+        tl.store(slot + 8, tl.sum(drawn * g2, axis=0))
+        tl.store(slot + 9, tl.sum(drawn * g3, axis=0))
+
+
+def _sum_slots(slot_grads, first_slot, n_slots, out, n_footprints, BLOCK: tl.constexpr):
+    """out (M, 10): footprint i's gradient, the sum of its n_slots[i] slots from first_slot[i] on, in tile order."""
+    i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    valid = i < n_footprints
+    first = tl.load(first_slot + i, mask=valid, other=0)
+    count = tl.load(n_slots + i, mask=valid, other=0)
+    gradient = tl.arange(0, 16)
+    useful = gradient < 10
+    total = tl.zeros([BLOCK, 16], slot_grads.dtype.element_ty)
+    for j in range(0, tl.max(count, axis=0)):
+        taken = (j < count)[:, None] & useful[None, :]
+        total += tl.load(slot_grads + (first + j)[:, None] * 10 + gradient[None, :], mask=taken, other=0.0)
+    tl.store(out + i[:, None] * 10 + gradient[None, :], total, mask=valid[:, None] & useful[None, :])
+
+
+_KERNELS: dict = {}  # the kernels, decorated once a process
+
+
+def kernels(device_type: str) -> tuple:
+    """The three kernels: compiled by Triton for a GPU, or, for CPU tensors, run by Triton's interpreter over numpy,
+    which the environment must ask for before Triton is imported (TRITON_INTERPRET=1, as the tests do)."""
+    if device_type == "cpu" and os.environ.get("TRITON_INTERPRET") != "1":
+        raise RuntimeError("the Triton rasteriser draws GPU tensors; CPU ones only in Triton's interpreter "
+                           "(TRITON_INTERPRET=1 before triton is imported); on a CPU use model.rasterizer=tiles")
+    if not _KERNELS:
+        _KERNELS.update(zip(("composite", "backward", "sum_slots"),
+                            (triton.jit(kernel) for kernel in (_composite, _composite_backward, _sum_slots))))
+    return _KERNELS["composite"], _KERNELS["backward"], _KERNELS["sum_slots"]
+
+
+def bin_footprints(packed: torch.Tensor, tiles_x: int, tiles_y: int) -> tuple[torch.Tensor, ...]:
+    """The footprints ``packed`` (M, 16) in drawing order, listed tile by tile.
+
+    Returns ``offsets`` (T + 1,) int64 (tile t's footprints are ``entries[offsets[t]:offsets[t + 1]]``), ``entries``
+    (E,) int32 rows of ``packed``, ``slot_of`` (E,) int64 where each entry's gradient goes, and ``first_slot`` (M,)
+    and ``n_slots`` (M,) int64: a row's slots are ``first_slot[i]`` and the ``n_slots[i] - 1`` after it, in tile
+    order. One stable sort by tile of the rows' (row, tile) pairs, listed row by row, keeps every tile nearest first."""
+    device = packed.device
+    boxes = packed[:, 10:14].long()  # first and last column, first and last row
+    drawn = (boxes[:, 1] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 2])
+    tile_x0, tile_y0 = boxes[:, 0].div(TILE, rounding_mode="floor"), boxes[:, 2].div(TILE, rounding_mode="floor")
+    across = boxes[:, 1].div(TILE, rounding_mode="floor") - tile_x0 + 1
+    down = boxes[:, 3].div(TILE, rounding_mode="floor") - tile_y0 + 1
+    n_slots = torch.where(drawn, across * down, 0)
+    first_slot = n_slots.cumsum(0) - n_slots
+    n_entries = int(n_slots.sum())  # the one value read back a view: the lists' length
+    rows = torch.repeat_interleave(torch.arange(len(packed), device=device), n_slots, output_size=n_entries)
+    within = torch.arange(n_entries, device=device) - first_slot.index_select(0, rows)
+    across_row = across.index_select(0, rows)
+    tile = (tile_y0.index_select(0, rows) + within.div(across_row, rounding_mode="floor")) * tiles_x \
+        + tile_x0.index_select(0, rows) + within.remainder(across_row)
+    tile, slot_of = torch.sort(tile, stable=True)
+    offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=device)
+    offsets[1:] = torch.bincount(tile, minlength=tiles_x * tiles_y).cumsum(0)
+    return offsets, rows.index_select(0, slot_of).int(), slot_of, first_slot, n_slots
+
+
+class TritonRasterize(torch.autograd.Function):
+    """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, 4) features -> (H, W, 4) weighted feature sums and (H, W)
+    accumulation, differentiable in the four inputs. The last feature is the depth the footprints are ordered by;
+    ``boxes`` (M, 4) are their pixel boxes."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int):
+        if features.ndim != 2 or features.shape[1] != FEATURES:
+            raise ValueError(f"TritonRasterize draws (M, {FEATURES}) features (colour and depth), got {tuple(features.shape)}")
+        composite, _, _ = kernels(features.device.type)
+        tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+        order = torch.sort(features[:, -1], stable=True).indices  # nearest first, ties by index
+        dtype = features.dtype
+        packed = torch.cat([means2d.to(dtype), conics.to(dtype), opacities.to(dtype)[:, None], features,
+                            boxes.to(dtype), features.new_zeros(len(features), 2)], dim=-1).index_select(0, order)
+        packed = packed.contiguous()
+        offsets, entries, slot_of, first_slot, n_slots = bin_footprints(packed, tiles_x, tiles_y)
+        n_pixels = height * width
+        shaded = features.new_empty(n_pixels, FEATURES)
+        accumulation = features.new_empty(n_pixels)
+        transmittance = torch.empty(n_pixels, dtype=torch.float64, device=features.device)
+        stop = torch.empty(n_pixels, dtype=torch.long, device=features.device)
+        composite[(tiles_x * tiles_y,)](packed, offsets, entries, height, width, tiles_x, shaded, accumulation,
+                                        transmittance, stop, TILE=TILE, MAX_ALPHA=MAX_ALPHA, MIN_ALPHA=MIN_ALPHA,
+                                        MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
+        ctx.save_for_backward(order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop)
+        ctx.size = (height, width, tiles_x, tiles_y)
+        return shaded.reshape(height, width, FEATURES), accumulation.reshape(height, width)
+
+    @staticmethod
+    def backward(ctx, grad_shaded, grad_accumulation):
+        order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop = ctx.saved_tensors
+        height, width, tiles_x, tiles_y = ctx.size
+        _, composite_backward, sum_slots = kernels(packed.device.type)
+        dtype = packed.dtype
+        grad_shaded = packed.new_zeros(height * width, FEATURES) if grad_shaded is None else \
+            grad_shaded.to(dtype).reshape(-1, FEATURES).contiguous()
+        grad_accumulation = packed.new_zeros(height * width) if grad_accumulation is None else \
+            grad_accumulation.to(dtype).reshape(-1).contiguous()
+        slot_grads = packed.new_zeros(len(entries), GRADIENTS)
+        composite_backward[(tiles_x * tiles_y,)](packed, offsets, entries, slot_of, height, width, tiles_x,
+                                                 transmittance, stop, grad_shaded, grad_accumulation, slot_grads,
+                                                 TILE=TILE, MAX_ALPHA=MAX_ALPHA, MIN_ALPHA=MIN_ALPHA, num_warps=8)
+        n_footprints = len(order)
+        drawn_order = packed.new_empty(n_footprints, GRADIENTS)
+        sum_slots[(triton.cdiv(n_footprints, SUM_BLOCK),)](slot_grads, first_slot, n_slots, drawn_order, n_footprints,
+                                                           BLOCK=SUM_BLOCK)
+        grads = torch.empty_like(drawn_order).index_copy_(0, order, drawn_order)  # back to the footprints' order
+        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None
+
+
+def rasterize_triton(projection: Projection, colours: torch.Tensor, height: int, width: int,
+                     background: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
+    something is drawn), accumulation (H, W); ``background`` (3,). CUDA tensors (CPU ones in Triton's interpreter);
+    differentiable in the footprints and colours (and the background)."""
+    boxes = pixel_boxes(projection, height, width)
+    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
+    shaded, accumulation = TritonRasterize.apply(projection.means2d, projection.conics, projection.opacities, features,
+                                                 boxes, height, width)
+    rgb = shaded[..., :3] + (1.0 - accumulation)[..., None] * background
+    depth = shaded[..., 3] / accumulation.clamp(min=1e-10)
+    return {"rgb": rgb, "depth": depth, "accumulation": accumulation}

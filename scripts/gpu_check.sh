@@ -6,8 +6,8 @@
 #   a. setup: the wheels into /tmp/site, the project on PYTHONPATH; torch, CUDA and the GPU's name
 #   b. the README's test command (CUDA where there is one) over pytest-xdist workers, bounded to GPU_CHECK_TEST_SECONDS
 #   rows of scripts/gpu_check.yaml through nerf-bench, one at a time (timed; nothing beside them):
-#   splat:    splat_blender_gpu, lego 800x800                        -> OUT/splat.json
-#   splatfox: splat_360_gpu, fox                                     -> OUT/splatfox.json
+#   splat:    splat_blender_gpu, lego 800x800, 2 minutes             -> OUT/splat.json
+#   splatfox: splat_360_gpu, fox, 2 minutes                          -> OUT/splatfox.json
 #   fast:     fast_blender_gpu, lego 800x800 (compiled)              -> OUT/fast.json
 #   cape:     nerfacto_360_gpu, moldGoldCape masked, downscale 4     -> OUT/cape.json
 #   (syncs: issue 47's CountHostSyncs over plain fast_blender_gpu steps, when named)
@@ -197,8 +197,8 @@ bench() {
         tr '\r' '\n' <"$log" | grep -v '^\s*$' | tail -n 25 | tee -a "$LOG"
     done
 }
-wants splat && bench splat lego/splat_blender_gpu/1min/seed0 1 45 0.5
-wants splatfox && bench splatfox fox/splat_360_gpu/1min/seed0 1 45 0.5
+wants splat && bench splat lego/splat_blender_gpu/2min/seed0 2 45 0.5
+wants splatfox && bench splatfox fox/splat_360_gpu/2min/seed0 2 45 0.5
 wants fast && bench fast lego/fast_blender_gpu/1min/seed0 1 60 0.5
 wants cape && bench cape moldGoldCape/nerfacto_360_gpu/1min/seed0 1 45 0.5
 

@@ -40,7 +40,8 @@ def scale(suite_path: str, row_id: str, minutes: float, out_path: str, smoke: bo
     spec = yaml.safe_load(Path(suite_path).read_text())
     factor = minutes / row.minutes
     entry = {"scene": row.scene, "preset": row.preset, "minutes": round(minutes, 3), "data": row.data,
-             "marks": sorted({round(mark * factor, 3) for mark in row.marks} if smoke else set(row.marks)), "seeds": [row.seed],
+             "marks": sorted({round(mark * factor, 3) for mark in row.marks} if smoke else
+                             {mark for mark in row.marks if mark < minutes} | {round(minutes, 3)}), "seeds": [row.seed],
              "overrides": list(row.overrides)}
     if smoke:
         entry["overrides"] += SMOKE_OVERRIDES.get(row.preset, [])

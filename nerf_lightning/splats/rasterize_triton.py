@@ -148,29 +148,30 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
         falloff = tl.exp(-sigma)
         alpha = tl.minimum(o * falloff, MAX_ALPHA)
         take = inside & in_box & (k < ends) & (sigma >= 0.0) & (alpha >= MIN_ALPHA)
-        alpha = alpha.to(tl.float64)
-        keep = 1.0 / (1.0 - alpha)
-        before = left * keep
-        weight = alpha * before
-        grad_weight = g4 + g0 * f0 + g1 * f1 + g2 * f2 + g3 * f3
-        grad_alpha = before * grad_weight - behind * keep
-        behind += tl.where(take, weight * grad_weight, 0.0)
-        left = tl.where(take, before, left)
-        unclamped = take & (o * falloff <= MAX_ALPHA)  # the clamp passes no gradient
-        grad_sigma = tl.where(unclamped, -alpha * grad_alpha, 0.0)
-        dx, dy = dx.to(tl.float64), dy.to(tl.float64)
-        slot = slot_grads + tl.load(slot_of + k) * 10
-        tl.store(slot + 0, -tl.sum(grad_sigma * (a * dx + b * dy), axis=0))
-        tl.store(slot + 1, -tl.sum(grad_sigma * (c * dy + b * dx), axis=0))
-        tl.store(slot + 2, tl.sum(grad_sigma * 0.5 * dx * dx, axis=0))
-        tl.store(slot + 3, tl.sum(grad_sigma * dx * dy, axis=0))
-        tl.store(slot + 4, tl.sum(grad_sigma * 0.5 * dy * dy, axis=0))
-        tl.store(slot + 5, tl.sum(tl.where(unclamped, falloff * grad_alpha, 0.0), axis=0))
-        drawn = tl.where(take, weight, 0.0)
-        tl.store(slot + 6, tl.sum(drawn * g0, axis=0))
-        tl.store(slot + 7, tl.sum(drawn * g1, axis=0))
-        tl.store(slot + 8, tl.sum(drawn * g2, axis=0))
-        tl.store(slot + 9, tl.sum(drawn * g3, axis=0))
+        if tl.max(take.to(tl.int32), axis=0) > 0:  # else the slot keeps its zeros: no pixel here drew it
+            alpha64 = alpha.to(tl.float64)  # a name of its own: both branches of the if keep their types
+            keep = 1.0 / (1.0 - alpha64)
+            before = left * keep
+            weight = alpha64 * before
+            grad_weight = g4 + g0 * f0 + g1 * f1 + g2 * f2 + g3 * f3
+            grad_alpha = before * grad_weight - behind * keep
+            behind += tl.where(take, weight * grad_weight, 0.0)
+            left = tl.where(take, before, left)
+            unclamped = take & (o * falloff <= MAX_ALPHA)  # the clamp passes no gradient
+            grad_sigma = tl.where(unclamped, -alpha64 * grad_alpha, 0.0)
+            x, y = dx.to(tl.float64), dy.to(tl.float64)
+            slot = slot_grads + tl.load(slot_of + k) * 10
+            tl.store(slot + 0, -tl.sum(grad_sigma * (a * x + b * y), axis=0))
+            tl.store(slot + 1, -tl.sum(grad_sigma * (c * y + b * x), axis=0))
+            tl.store(slot + 2, tl.sum(grad_sigma * 0.5 * x * x, axis=0))
+            tl.store(slot + 3, tl.sum(grad_sigma * x * y, axis=0))
+            tl.store(slot + 4, tl.sum(grad_sigma * 0.5 * y * y, axis=0))
+            tl.store(slot + 5, tl.sum(tl.where(unclamped, falloff * grad_alpha, 0.0), axis=0))
+            drawn = tl.where(take, weight, 0.0)
+            tl.store(slot + 6, tl.sum(drawn * g0, axis=0))
+            tl.store(slot + 7, tl.sum(drawn * g1, axis=0))
+            tl.store(slot + 8, tl.sum(drawn * g2, axis=0))
+            tl.store(slot + 9, tl.sum(drawn * g3, axis=0))
 
 
 def _sum_slots(slot_grads, first_slot, n_slots, out, n_footprints, BLOCK: tl.constexpr):
@@ -252,9 +253,15 @@ class TritonRasterize(torch.autograd.Function):
         accumulation = features.new_empty(n_pixels)
         transmittance = torch.empty(n_pixels, dtype=torch.float64, device=features.device)
         stop = torch.empty(n_pixels, dtype=torch.long, device=features.device)
-        composite[(tiles_x * tiles_y,)](packed, offsets, entries, height, width, tiles_x, shaded, accumulation,
-                                        transmittance, stop, TILE=TILE, MAX_ALPHA=MAX_ALPHA, MIN_ALPHA=MIN_ALPHA,
-                                        MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
+        if len(entries) == 0:  # nothing drawn (and no kernel handed an empty tensor's null pointer)
+            shaded.zero_()
+            accumulation.zero_()
+            transmittance.fill_(1.0)
+            stop.zero_()
+        else:
+            composite[(tiles_x * tiles_y,)](packed, offsets, entries, height, width, tiles_x, shaded, accumulation,
+                                            transmittance, stop, TILE=TILE, MAX_ALPHA=MAX_ALPHA, MIN_ALPHA=MIN_ALPHA,
+                                            MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
         ctx.save_for_backward(order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop)
         ctx.size = (height, width, tiles_x, tiles_y)
         return shaded.reshape(height, width, FEATURES), accumulation.reshape(height, width)
@@ -269,11 +276,14 @@ class TritonRasterize(torch.autograd.Function):
             grad_shaded.to(dtype).reshape(-1, FEATURES).contiguous()
         grad_accumulation = packed.new_zeros(height * width) if grad_accumulation is None else \
             grad_accumulation.to(dtype).reshape(-1).contiguous()
+        n_footprints = len(order)
+        if len(entries) == 0:
+            zeros = packed.new_zeros(n_footprints, GRADIENTS)
+            return zeros[:, 0:2], zeros[:, 2:5], zeros[:, 5], zeros[:, 6:], None, None, None
         slot_grads = packed.new_zeros(len(entries), GRADIENTS)
         composite_backward[(tiles_x * tiles_y,)](packed, offsets, entries, slot_of, height, width, tiles_x,
                                                  transmittance, stop, grad_shaded, grad_accumulation, slot_grads,
                                                  TILE=TILE, MAX_ALPHA=MAX_ALPHA, MIN_ALPHA=MIN_ALPHA, num_warps=8)
-        n_footprints = len(order)
         drawn_order = packed.new_empty(n_footprints, GRADIENTS)
         sum_slots[(triton.cdiv(n_footprints, SUM_BLOCK),)](slot_grads, first_slot, n_slots, drawn_order, n_footprints,
                                                            BLOCK=SUM_BLOCK)

@@ -38,8 +38,8 @@ def test_the_gpu_check_suite_loads_and_its_rows_compose():
     from nerf_lightning.config import compose_config
 
     suite = load_suite(str(ROOT / "scripts" / "gpu_check.yaml"))
-    assert [row.id for row in suite.rows] == ["lego/splat_blender_gpu/1min/seed0", "fox/splat_360_gpu/1min/seed0",
+    assert [row.id for row in suite.rows] == ["lego/splat_blender_gpu/2min/seed0", "fox/splat_360_gpu/2min/seed0",
                                               "lego/fast_blender_gpu/1min/seed0", "moldGoldCape/nerfacto_360_gpu/1min/seed0"]
-    assert all(row.device == "cuda" for row in suite.rows) and suite.rows[0].marks == (1.0,)
+    assert all(row.device == "cuda" for row in suite.rows) and suite.rows[0].marks == (1.0, 2.0)
     for row in suite.rows:
         compose_config([f"experiment={row.preset}", f"data.root=/nowhere/{row.data}", *row.overrides])

@@ -243,14 +243,16 @@ class TritonRasterize(torch.autograd.Function):
         composite, _, _ = kernels(features.device.type)
         tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
         order = torch.sort(features[:, -1], stable=True).indices  # nearest first, ties by index
-        dtype = features.dtype
-        packed = torch.cat([means2d.to(dtype), conics.to(dtype), opacities.to(dtype)[:, None], features,
+        # float32, or float64 where given: a footprint from a bf16 or fp16 projection (autocast's matrix products) is
+        # drawn in float32, and autograd gives its gradient back in its own dtype
+        dtype = torch.float64 if features.dtype == torch.float64 else torch.float32
+        packed = torch.cat([means2d.to(dtype), conics.to(dtype), opacities.to(dtype)[:, None], features.to(dtype),
                             boxes.to(dtype), features.new_zeros(len(features), 2)], dim=-1).index_select(0, order)
         packed = packed.contiguous()
         offsets, entries, slot_of, first_slot, n_slots = bin_footprints(packed, tiles_x, tiles_y)
         n_pixels = height * width
-        shaded = features.new_empty(n_pixels, FEATURES)
-        accumulation = features.new_empty(n_pixels)
+        shaded = packed.new_empty(n_pixels, FEATURES)
+        accumulation = packed.new_empty(n_pixels)
         transmittance = torch.empty(n_pixels, dtype=torch.float64, device=features.device)
         stop = torch.empty(n_pixels, dtype=torch.long, device=features.device)
         if len(entries) == 0:  # nothing drawn (and no kernel handed an empty tensor's null pointer)

@@ -98,3 +98,20 @@ def test_the_same_input_gives_the_same_gradients_bit_for_bit():
         grads.append(torch.autograd.grad(out["rgb"].square().sum() + out["depth"].sum(), [*leaves, colours]))
     for a, b in zip(*grads):
         assert torch.isfinite(a).all() and torch.equal(a, b)
+
+
+def test_a_bfloat16_projection_is_drawn_in_float32_with_gradients_in_its_own_dtype():
+    # autocast's bf16 matrix products make the projection bf16 on a GPU: drawn in float32, as float32 footprints are
+    g = gaussians(n=60, seed=12)
+    K, c2w = camera(20, 24)
+    with torch.no_grad():
+        projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K, c2w, 20, 24)
+    half = Projection(projection.ids, *(value.bfloat16().requires_grad_() for value in projection[1:5]), projection.extents)
+    colours = g["colours"].detach()[projection.ids]
+    out = on_device(half, colours, 20, 24, BACKGROUND)
+    assert out["rgb"].dtype == torch.float32
+    exact = on_device(Projection(projection.ids, *(value.bfloat16().float() for value in projection[1:5]), projection.extents),
+                      colours, 20, 24, BACKGROUND)
+    torch.testing.assert_close(out["rgb"], exact["rgb"])
+    out["rgb"].sum().backward()
+    assert half.means2d.grad.dtype == torch.bfloat16 and torch.isfinite(half.means2d.grad.float()).all()

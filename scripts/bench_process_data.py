@@ -3,7 +3,8 @@ register, how far the recovered cameras are from the published ones after a simi
 of each stage.
 
     .venv/bin/python scripts/bench_process_data.py [--root ../shared/data/nerfstudio/fox | --turntable] [--images images]
-        [--masks [masks]] [--mapper auto] [--photos N] [--max-size 1600] [--mappers-over-seeds 0 1 2 3] [--work DIR]
+        [--masks [masks]] [--mask-change erode:N|dilate:N] [--mapper auto] [--photos N] [--max-size 1600]
+        [--mappers-over-seeds 0 1 2 3] [--work DIR]
         [--out FILE.json] [-- more process_capture keys as key=value]
 
 A masked object capture with the photographer's LLFF poses (moldGoldCape, at 912 px):
@@ -13,7 +14,9 @@ A masked object capture with the photographer's LLFF poses (moldGoldCape, at 912
 
 ``--turntable``: the procedural turntable capture (rendered into the temporary folder; its reference poses are the
 cameras relative to the object). ``--images``: the photos' folder under ``--root`` (images); ``--masks [FOLDER]``:
-hand ``<root>/<FOLDER>`` (masks) to the command (``masks=``). The published poses are ``<root>/transforms.json``, or
+hand ``<root>/<FOLDER>`` (masks) to the command (``masks=``); ``--mask-change erode:N`` or ``dilate:N``: those masks
+eroded or dilated by N pixels of their own size first (a rougher mask than the photographer's, as a user's often is).
+The published poses are ``<root>/transforms.json``, or
 ``<root>/poses_bounds.npy`` (LLFF: a row a photo in name order). The results table's
 posing rows are these JSONs: ``--out docs/results/posing/<name>.json``, then ``nerf-bench report``.
 
@@ -93,6 +96,28 @@ def chosen_photos(images: Path, count: int | None, folder: Path) -> Path:
     return folder
 
 
+def changed_masks(masks: Path, change: str, folder: Path) -> Path:
+    """``masks`` (white: the object) eroded (``erode:N``) or dilated (``dilate:N``) by N pixels, written into ``folder``."""
+    import imageio.v3 as iio
+    import numpy as np
+    import torch
+
+    kind, _, size = change.partition(":")
+    if kind not in ("erode", "dilate") or not size.isdigit():
+        raise SystemExit(f"--mask-change must be erode:N or dilate:N (N pixels), got {change!r}")
+    folder.mkdir(parents=True)
+    for path in sorted(masks.iterdir()):
+        mask = iio.imread(path)
+        white = torch.from_numpy((mask if mask.ndim == 2 else mask[..., 0]) > 127).float()[None, None]
+        window = 2 * int(size) + 1
+        if kind == "dilate":
+            white = torch.nn.functional.max_pool2d(white, window, stride=1, padding=int(size))
+        else:
+            white = 1.0 - torch.nn.functional.max_pool2d(1.0 - white, window, stride=1, padding=int(size))
+        iio.imwrite(folder / f"{path.stem}.png", (white[0, 0].numpy() * 255).astype(np.uint8))
+    return folder
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="\n".join(__doc__.splitlines()[1:]))
@@ -100,6 +125,7 @@ def main() -> None:
     parser.add_argument("--turntable", action="store_true", help="the procedural turntable capture instead of --root")
     parser.add_argument("--images", default="images", help="the photos' folder under --root (default images)")
     parser.add_argument("--masks", nargs="?", const="masks", default=None, help="give the command <root>/MASKS (masks=; default masks)")
+    parser.add_argument("--mask-change", default=None, help="erode:N or dilate:N: the masks eroded or dilated by N pixels first")
     parser.add_argument("--mapper", choices=("auto", "global", "incremental"), default="auto")
     parser.add_argument("--photos", type=int, default=None, help="only this many photos, evenly spaced by name (default all)")
     parser.add_argument("--max-size", type=int, default=1600, help="the long side the features are read at (default 1600, the command's)")
@@ -132,10 +158,12 @@ def main() -> None:
         images = chosen_photos(args.root / args.images, args.photos, Path(temporary) / "photos")
         work = args.work or Path(temporary) / "capture"
         masks = args.root / args.masks if args.masks else None
+        if masks is not None and args.mask_change:
+            masks = changed_masks(masks, args.mask_change, Path(temporary) / "masks")
         started = time.perf_counter()
         head = {**start_result("cpu"), "benchmark": "process_data", "root": str(args.root),
                 "capture": "procedural turntable" if args.turntable else args.root.name, "images": args.images,
-                "masks": args.masks, "photos": args.photos, "process_capture": settings}
+                "masks": args.masks, "mask_change": args.mask_change, "photos": args.photos, "process_capture": settings}
         try:  # min_registered=0: the photos that register are compared, however few
             report = process_capture(images, work, mapper=args.mapper, max_size=args.max_size, progress=False, seed=0, masks=masks,
                                      **{"min_registered": 0.0, **settings})

@@ -60,6 +60,14 @@ def _psnr(row: dict[str, Any]) -> str:
     return _number(row["psnr"], 2) + ("" if masked is None else f" (mask {masked:.2f})")
 
 
+def masks_label(result: dict[str, Any]) -> str:
+    """A posing row's masks: no, yes, or eroded / dilated by N px (``--mask-change``)."""
+    if not result.get("masks"):
+        return "no"
+    kind, _, size = (result.get("mask_change") or "").partition(":")
+    return {"erode": f"eroded {size} px", "dilate": f"dilated {size} px"}.get(kind, "yes")
+
+
 def posing_table(results: list[dict[str, Any]]) -> list[str]:
     """``scripts/bench_process_data.py``'s JSONs as one table: photos registered and their cameras' errors against
     reference poses after a similarity alignment, and the seconds."""
@@ -70,7 +78,7 @@ def posing_table(results: list[dict[str, Any]]) -> list[str]:
     ]
     for r in results:
         lines.append(
-            f"| {r['capture']}{'' if r.get('images', 'images') == 'images' else ' ' + r['images'] + '/'} | {'yes' if r.get('masks') else 'no'} | {r['images_given']} | {_number(r.get('registered'), 0)} "
+            f"| {r['capture']}{'' if r.get('images', 'images') == 'images' else ' ' + r['images'] + '/'} | {masks_label(r)} | {r['images_given']} | {_number(r.get('registered'), 0)} "
             f"| {_number(r.get('median_position_error_percent_of_spread'), 2)} / {_number(r.get('max_position_error_percent_of_spread'), 2)} "
             f"| {_number(r.get('median_rotation_error_deg'), 2)} / {_number(r.get('max_rotation_error_deg'), 2)} "
             f"| {r['total_s']:.0f} | {r['machine']['name']} | {r['date'][:10]} |"
@@ -185,7 +193,8 @@ def write_report(results_dir: Path, report: Path, readme: Path | None = None) ->
                   "`scripts/bench_process_data.py`, one JSON a row in "
                   f"`{os.path.relpath(results_dir / 'posing', report.parent) if results_dir.is_absolute() else results_dir / 'posing'}/`).", "",
                   *posing_table(posing), "", "Reproduce:", ""]
-        lines += [f"- {r['capture']}{' with masks' if r.get('masks') else ''}: `{' '.join(r['command'])}`" for r in posing]
+        lines += [f"- {r['capture']}{'' if not r.get('masks') else ' with masks' if masks_label(r) == 'yes' else ', masks ' + masks_label(r)}: "
+                  f"`{' '.join(r['command'])}`" for r in posing]
         lines.append("")
     missing = unmeasured(rows)
     if missing:

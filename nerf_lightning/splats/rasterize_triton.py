@@ -19,7 +19,10 @@ equal), without a tensor of (footprint, pixel) pairs, and the same steps as the 
    footprint's slots in tile order. No two programs add into one number (no atomics), so the same input gives the
    same gradients bit for bit.
 
-Sums are carried in the inputs' dtype (float32 in training). Triton compiles the kernels for the GPU the first time
+Transmittance, the per-pixel sums, the sum behind and a tile's gradient sums are carried in float64 (a pixel may take
+hundreds of footprints, and the backward pass divides by 1 - alpha; the tests hold the gradients to 1e-5, which float32
+sums miss), the outputs and the slots' sums in float32 (float64 for float64 inputs). float64 runs at half float32's
+rate on data-centre GPUs and far slower on consumer ones, but a step's time goes elsewhere (docs/benchmarks.md). Triton compiles the kernels for the GPU the first time
 they run; on CPU tensors they run in Triton's interpreter (numpy), which is how the tests check them without a GPU:
 far too slow to draw with, so :mod:`~nerf_lightning.splats.rasterizers` takes this path on CUDA only.
 """
@@ -49,7 +52,8 @@ SUM_BLOCK = 128
 
 
 def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumulation, transmittance, stop,
-               TILE: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr, MIN_TRANSMITTANCE: tl.constexpr):
+               TILE: tl.constexpr, PACKED: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr,
+               MIN_TRANSMITTANCE: tl.constexpr):
     """Forward: one program a tile. Written: shaded (H * W, 4), accumulation, transmittance (H * W,) and stop (H * W,)
     int64, the tile-list position where the pixel was done (its tile's end where it never was)."""
     t = tl.program_id(0)
@@ -72,7 +76,7 @@ def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumul
     k = start
     go = start < end
     while go:
-        footprint = packed + tl.load(entries + k).to(tl.int64) * 16
+        footprint = packed + tl.load(entries + k).to(tl.int64) * PACKED
         mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
         a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
         o = tl.load(footprint + 5)
@@ -110,8 +114,8 @@ def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumul
 
 
 def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_x, transmittance, stop, grad_shaded,
-                        grad_accumulation, slot_grads, TILE: tl.constexpr, MAX_ALPHA: tl.constexpr,
-                        MIN_ALPHA: tl.constexpr):
+                        grad_accumulation, slot_grads, TILE: tl.constexpr, PACKED: tl.constexpr,
+                        GRADIENTS: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr):
     """Backward: one program a tile, back to front. Written: slot_grads (E, 10), at each tile-list entry's slot
     (``slot_of``), its footprint's gradient from this tile's pixels: d means2d (2), d conic (3), d opacity, d features
     (4). Entries past every pixel's stop keep the zeros they were given."""
@@ -135,7 +139,7 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
     last = tl.max(tl.where(inside, ends, start), axis=0)  # no pixel took a footprint from here on
     for j in range(0, last - start):
         k = last - 1 - j
-        footprint = packed + tl.load(entries + k).to(tl.int64) * 16
+        footprint = packed + tl.load(entries + k).to(tl.int64) * PACKED
         mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
         a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
         o = tl.load(footprint + 5)
@@ -160,7 +164,7 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
             unclamped = take & (o * falloff <= MAX_ALPHA)  # the clamp passes no gradient
             grad_sigma = tl.where(unclamped, -alpha64 * grad_alpha, 0.0)
             x, y = dx.to(tl.float64), dy.to(tl.float64)
-            slot = slot_grads + tl.load(slot_of + k) * 10
+            slot = slot_grads + tl.load(slot_of + k) * GRADIENTS
             tl.store(slot + 0, -tl.sum(grad_sigma * (a * x + b * y), axis=0))
             tl.store(slot + 1, -tl.sum(grad_sigma * (c * y + b * x), axis=0))
             tl.store(slot + 2, tl.sum(grad_sigma * 0.5 * x * x, axis=0))
@@ -174,19 +178,20 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
             tl.store(slot + 9, tl.sum(drawn * g3, axis=0))
 
 
-def _sum_slots(slot_grads, first_slot, n_slots, out, n_footprints, BLOCK: tl.constexpr):
-    """out (M, 10): footprint i's gradient, the sum of its n_slots[i] slots from first_slot[i] on, in tile order."""
+def _sum_slots(slot_grads, first_slot, n_slots, out, n_footprints, BLOCK: tl.constexpr, GRADIENTS: tl.constexpr):
+    """out (M, GRADIENTS): footprint i's gradient, the sum of its n_slots[i] slots from first_slot[i] on, in tile
+    order."""
     i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     valid = i < n_footprints
     first = tl.load(first_slot + i, mask=valid, other=0)
     count = tl.load(n_slots + i, mask=valid, other=0)
-    gradient = tl.arange(0, 16)
-    useful = gradient < 10
+    gradient = tl.arange(0, 16)  # a power of two that holds GRADIENTS
+    useful = gradient < GRADIENTS
     total = tl.zeros([BLOCK, 16], slot_grads.dtype.element_ty)
     for j in range(0, tl.max(count, axis=0)):
         taken = (j < count)[:, None] & useful[None, :]
-        total += tl.load(slot_grads + (first + j)[:, None] * 10 + gradient[None, :], mask=taken, other=0.0)
-    tl.store(out + i[:, None] * 10 + gradient[None, :], total, mask=valid[:, None] & useful[None, :])
+        total += tl.load(slot_grads + (first + j)[:, None] * GRADIENTS + gradient[None, :], mask=taken, other=0.0)
+    tl.store(out + i[:, None] * GRADIENTS + gradient[None, :], total, mask=valid[:, None] & useful[None, :])
 
 
 _KERNELS: dict = {}  # the kernels, decorated once a process
@@ -247,7 +252,8 @@ class TritonRasterize(torch.autograd.Function):
         # drawn in float32, and autograd gives its gradient back in its own dtype
         dtype = torch.float64 if features.dtype == torch.float64 else torch.float32
         packed = torch.cat([means2d.to(dtype), conics.to(dtype), opacities.to(dtype)[:, None], features.to(dtype),
-                            boxes.to(dtype), features.new_zeros(len(features), 2)], dim=-1).index_select(0, order)
+                            boxes.to(dtype), features.new_zeros(len(features), PACKED - 14, dtype=dtype)],
+                           dim=-1).index_select(0, order)
         packed = packed.contiguous()
         offsets, entries, slot_of, first_slot, n_slots = bin_footprints(packed, tiles_x, tiles_y)
         n_pixels = height * width
@@ -262,8 +268,8 @@ class TritonRasterize(torch.autograd.Function):
             stop.zero_()
         else:
             composite[(tiles_x * tiles_y,)](packed, offsets, entries, height, width, tiles_x, shaded, accumulation,
-                                            transmittance, stop, TILE=TILE, MAX_ALPHA=MAX_ALPHA, MIN_ALPHA=MIN_ALPHA,
-                                            MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
+                                            transmittance, stop, TILE=TILE, PACKED=PACKED, MAX_ALPHA=MAX_ALPHA,
+                                            MIN_ALPHA=MIN_ALPHA, MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
         ctx.save_for_backward(order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop)
         ctx.size = (height, width, tiles_x, tiles_y)
         return shaded.reshape(height, width, FEATURES), accumulation.reshape(height, width)
@@ -285,10 +291,11 @@ class TritonRasterize(torch.autograd.Function):
         slot_grads = packed.new_zeros(len(entries), GRADIENTS)
         composite_backward[(tiles_x * tiles_y,)](packed, offsets, entries, slot_of, height, width, tiles_x,
                                                  transmittance, stop, grad_shaded, grad_accumulation, slot_grads,
-                                                 TILE=TILE, MAX_ALPHA=MAX_ALPHA, MIN_ALPHA=MIN_ALPHA, num_warps=8)
+                                                 TILE=TILE, PACKED=PACKED, GRADIENTS=GRADIENTS, MAX_ALPHA=MAX_ALPHA,
+                                                 MIN_ALPHA=MIN_ALPHA, num_warps=8)
         drawn_order = packed.new_empty(n_footprints, GRADIENTS)
         sum_slots[(triton.cdiv(n_footprints, SUM_BLOCK),)](slot_grads, first_slot, n_slots, drawn_order, n_footprints,
-                                                           BLOCK=SUM_BLOCK)
+                                                           BLOCK=SUM_BLOCK, GRADIENTS=GRADIENTS)
         grads = torch.empty_like(drawn_order).index_copy_(0, order, drawn_order)  # back to the footprints' order
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None
 

@@ -8,9 +8,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-pytest.importorskip("triton")
+triton = pytest.importorskip("triton")
 
 from nerf_lightning.splats.projection import Projection, project  # noqa: E402
+from nerf_lightning.splats.rasterize_dense import rasterize_dense  # noqa: E402
 from nerf_lightning.splats.rasterize_triton import TILE, rasterize_triton  # noqa: E402
 from tests.splats.test_rasterize import camera, gaussians  # noqa: E402
 from tests.splats.test_rasterize_tiles import (  # noqa: E402
@@ -115,3 +116,60 @@ def test_a_bfloat16_projection_is_drawn_in_float32_with_gradients_in_its_own_dty
     torch.testing.assert_close(out["rgb"], exact["rgb"])
     out["rgb"].sum().backward()
     assert half.means2d.grad.dtype == torch.bfloat16 and torch.isfinite(half.means2d.grad.float()).all()
+
+
+def test_float64_inputs_are_drawn_in_float64():
+    g = {key: value.detach().double().requires_grad_() for key, value in gaussians(seed=9).items()}
+    K, c2w = camera()
+    projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K.double(),
+                         c2w.double(), 20, 24)
+    out = on_device(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
+    assert out["rgb"].dtype == torch.float64
+    reference = rasterize_dense(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
+    torch.testing.assert_close(out["rgb"], reference["rgb"], atol=1e-10, rtol=1e-10)
+
+
+def compile_kernels(dtype: str) -> None:
+    """Each kernel compiled to a Hopper cubin for ``dtype`` ("fp32" or "fp64") footprints, as a GPU would, with no GPU."""
+    import nerf_lightning.splats.rasterize_triton as kernels
+    from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+    from triton.runtime.jit import JITFunction
+
+    f = f"*{dtype}"
+    limits = {"MAX_ALPHA": MAX_ALPHA, "MIN_ALPHA": MIN_ALPHA}
+    jobs = [
+        (kernels._composite, {"packed": f, "offsets": "*i64", "entries": "*i32", "height": "i32", "width": "i32",
+                              "tiles_x": "i32", "shaded": f, "accumulation": f, "transmittance": "*fp64", "stop": "*i64"},
+         {"TILE": kernels.TILE, "PACKED": kernels.PACKED, **limits, "MIN_TRANSMITTANCE": MIN_TRANSMITTANCE}),
+        (kernels._composite_backward, {"packed": f, "offsets": "*i64", "entries": "*i32", "slot_of": "*i64", "height": "i32",
+                                       "width": "i32", "tiles_x": "i32", "transmittance": "*fp64", "stop": "*i64",
+                                       "grad_shaded": f, "grad_accumulation": f, "slot_grads": f},
+         {"TILE": kernels.TILE, "PACKED": kernels.PACKED, "GRADIENTS": kernels.GRADIENTS, **limits}),
+        (kernels._sum_slots, {"slot_grads": f, "first_slot": "*i64", "n_slots": "*i64", "out": f, "n_footprints": "i32"},
+         {"BLOCK": kernels.SUM_BLOCK, "GRADIENTS": kernels.GRADIENTS}),
+    ]
+    for fn, signature, constants in jobs:
+        jitted = JITFunction(fn)
+        source = ASTSource(fn=jitted, signature={**signature, **{name: "constexpr" for name in constants}},
+                           constexprs={(jitted.arg_names.index(name),): value for name, value in constants.items()})
+        compiled = triton.compile(source, target=GPUTarget("cuda", 90, 32), options={"num_warps": 8})
+        assert "cubin" in compiled.asm, fn.__name__
+
+
+@pytest.mark.skipif(DEVICE == "cuda", reason="on a GPU the other tests compile and run the kernels")
+@pytest.mark.parametrize("dtype", ["fp32", "fp64"])
+def test_the_kernels_compile_for_a_gpu_without_one(dtype):
+    """The interpreter runs what Triton's compiler may still refuse (a global, a branch that changes a variable's
+    type): compiled in a process of its own, since this one runs Triton's language in the interpreter."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    result = subprocess.run([sys.executable, "-c", f"from tests.splats.test_rasterize_triton import compile_kernels; "
+                             f"compile_kernels({dtype!r})"], cwd=root, capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "TRITON_INTERPRET": "0", "TRITON_DEFAULT_FP_FUSION": "1"})
+    assert result.returncode == 0, result.stderr[-3000:]

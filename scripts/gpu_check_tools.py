@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import sys
 import xml.etree.ElementTree as ElementTree
@@ -115,7 +116,11 @@ def warning_lines(folder: Path) -> list[str]:
 def test_lines(junit: Path, log: Path, which: str = "tests") -> list[str]:
     lines = [f"== {which} (CUDA where the machine has it)"]
     if not junit.exists():
-        return [*lines, "  no junit.xml: the tests did not run or were killed; see log.txt"]
+        # killed before pytest wrote its XML: the failures its -v lines named as they ended
+        text = log.read_text(errors="replace") if log.exists() else ""
+        named = [line.strip() for line in text.splitlines() if re.search(r"\b(FAILED|ERROR) tests/", line)]
+        return [*lines, "  no junit.xml: the tests did not run or were killed; see log.txt",
+                *(f"  {line[:300]}" for line in named)]
     root = ElementTree.parse(junit).getroot()
     suites = [root] if root.tag == "testsuite" else list(root)
     counts = {key: sum(int(suite.get(key, 0)) for suite in suites) for key in ("tests", "failures", "errors", "skipped")}

@@ -75,10 +75,29 @@ def rasterize(projection: Projection, colours: torch.Tensor, height: int, width:
         weights = torch.where(done, torch.zeros_like(alpha), composited.weights)
         shaded = shaded.index_add(0, pixel, weights[:, None] * shades.index_select(0, footprint))
         accumulation = accumulation.index_add(0, pixel, weights)
-    rgb = shaded[:, :3] + (1.0 - accumulation)[:, None] * background
-    depth = shaded[:, 3] / accumulation.clamp(min=1e-10)
-    return {"rgb": rgb.reshape(height, width, 3), "depth": depth.reshape(height, width),
-            "accumulation": accumulation.reshape(height, width)}
+    return shaded_view(shaded.reshape(height, width, 4), accumulation.reshape(height, width), background)
+
+
+def shaded_view(shaded: torch.Tensor, accumulation: torch.Tensor, background: torch.Tensor) -> dict[str, torch.Tensor]:
+    """A view from its pixels' weighted sums of colour and depth, shaded (H, W, 4), and accumulation (H, W): rgb
+    (H, W, 3) over ``background`` (3,) by what transmittance is left, depth (H, W) the weights' mean where something
+    is drawn, and the accumulation. The last step of every rasteriser."""
+    rgb = shaded[..., :3] + (1.0 - accumulation)[..., None] * background
+    depth = shaded[..., 3] / accumulation.clamp(min=1e-10)
+    return {"rgb": rgb, "depth": depth, "accumulation": accumulation}
+
+
+def composite_features(composite, projection: Projection, colours: torch.Tensor, height: int, width: int,
+                       background: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Draw a view with a tile rasteriser's autograd function ``composite`` (``TileRasterize.apply``,
+    ``TritonRasterize.apply``: means2d, conics, opacities, (M, 4) features, (M, 4) pixel boxes, height, width ->
+    shaded (H, W, 4), accumulation (H, W)), the footprints' features their colours and their depth (the last, which
+    orders them); then :func:`shaded_view`."""
+    boxes = pixel_boxes(projection, height, width)
+    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
+    shaded, accumulation = composite(projection.means2d, projection.conics, projection.opacities, features, boxes,
+                                     height, width)
+    return shaded_view(shaded, accumulation, background)
 
 
 def footprint_table(projection: Projection) -> torch.Tensor:

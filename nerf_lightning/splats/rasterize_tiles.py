@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
-from nerf_lightning.splats.rasterize import pixel_boxes
+from nerf_lightning.splats.rasterize import composite_features
 
 # a tile's side in pixels (3DGS's and gsplat's 16)
 TILE = 16
@@ -372,10 +372,4 @@ def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, 
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). CPU tensors; differentiable in the footprints and
     colours (and the background)."""
-    boxes = pixel_boxes(projection, height, width)
-    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
-    shaded, accumulation = TileRasterize.apply(projection.means2d, projection.conics, projection.opacities, features,
-                                               boxes, height, width)
-    rgb = shaded[..., :3] + (1.0 - accumulation)[..., None] * background
-    depth = shaded[..., 3] / accumulation.clamp(min=1e-10)
-    return {"rgb": rgb, "depth": depth, "accumulation": accumulation}
+    return composite_features(TileRasterize.apply, projection, colours, height, width, background)

@@ -36,7 +36,7 @@ import triton
 import triton.language as tl
 
 from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
-from nerf_lightning.splats.rasterize import pixel_boxes
+from nerf_lightning.splats.rasterize import composite_features
 
 # a tile's side in pixels (3DGS's and gsplat's 16): a program's 256 lanes
 TILE = 16
@@ -51,6 +51,24 @@ GRADIENTS = 10
 SUM_BLOCK = 128
 
 
+@triton.jit
+def _footprint(packed, entries, k, u, v, PACKED: tl.constexpr):
+    """Tile-list entry k's footprint at the pixel centres (u, v): dx, dy, sigma, whether each pixel is in its box,
+    its conic (a, b, c), opacity o and features f0..f3 (colour and depth)."""
+    footprint = packed + tl.load(entries + k).to(tl.int64) * PACKED
+    mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
+    a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
+    o = tl.load(footprint + 5)
+    f0, f1, f2, f3 = tl.load(footprint + 6), tl.load(footprint + 7), tl.load(footprint + 8), tl.load(footprint + 9)
+    in_box = (u >= tl.load(footprint + 10)) & (u <= tl.load(footprint + 11) + 1.0) \
+        & (v >= tl.load(footprint + 12)) & (v <= tl.load(footprint + 13) + 1.0)
+    dx = u - mx
+    dy = v - my
+    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+    return dx, dy, sigma, in_box, a, b, c, o, f0, f1, f2, f3
+
+
+@triton.jit
 def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumulation, transmittance, stop,
                TILE: tl.constexpr, PACKED: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr,
                MIN_TRANSMITTANCE: tl.constexpr):
@@ -76,16 +94,7 @@ def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumul
     k = start
     go = start < end
     while go:
-        footprint = packed + tl.load(entries + k).to(tl.int64) * PACKED
-        mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
-        a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
-        o = tl.load(footprint + 5)
-        f0, f1, f2, f3 = tl.load(footprint + 6), tl.load(footprint + 7), tl.load(footprint + 8), tl.load(footprint + 9)
-        in_box = (u >= tl.load(footprint + 10)) & (u <= tl.load(footprint + 11) + 1.0) \
-            & (v >= tl.load(footprint + 12)) & (v <= tl.load(footprint + 13) + 1.0)
-        dx = u - mx
-        dy = v - my
-        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+        _, _, sigma, in_box, _, _, _, o, f0, f1, f2, f3 = _footprint(packed, entries, k, u, v, PACKED)
         alpha = tl.minimum(o * tl.exp(-sigma), MAX_ALPHA)
         take = active & in_box & (sigma >= 0.0) & (alpha >= MIN_ALPHA)
         alpha = alpha.to(tl.float64)
@@ -113,6 +122,7 @@ def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumul
     tl.store(stop + pixel, ends, mask=inside)
 
 
+@triton.jit
 def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_x, transmittance, stop, grad_shaded,
                         grad_accumulation, slot_grads, TILE: tl.constexpr, PACKED: tl.constexpr,
                         GRADIENTS: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr):
@@ -139,16 +149,7 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
     last = tl.max(tl.where(inside, ends, start), axis=0)  # no pixel took a footprint from here on
     for j in range(0, last - start):
         k = last - 1 - j
-        footprint = packed + tl.load(entries + k).to(tl.int64) * PACKED
-        mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
-        a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
-        o = tl.load(footprint + 5)
-        f0, f1, f2, f3 = tl.load(footprint + 6), tl.load(footprint + 7), tl.load(footprint + 8), tl.load(footprint + 9)
-        in_box = (u >= tl.load(footprint + 10)) & (u <= tl.load(footprint + 11) + 1.0) \
-            & (v >= tl.load(footprint + 12)) & (v <= tl.load(footprint + 13) + 1.0)
-        dx = u - mx
-        dy = v - my
-        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+        dx, dy, sigma, in_box, a, b, c, o, f0, f1, f2, f3 = _footprint(packed, entries, k, u, v, PACKED)
         falloff = tl.exp(-sigma)
         alpha = tl.minimum(o * falloff, MAX_ALPHA)
         take = inside & in_box & (k < ends) & (sigma >= 0.0) & (alpha >= MIN_ALPHA)
@@ -178,6 +179,7 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
             tl.store(slot + 9, tl.sum(drawn * g3, axis=0))
 
 
+@triton.jit
 def _sum_slots(slot_grads, first_slot, n_slots, out, n_footprints, BLOCK: tl.constexpr, GRADIENTS: tl.constexpr):
     """out (M, GRADIENTS): footprint i's gradient, the sum of its n_slots[i] slots from first_slot[i] on, in tile
     order."""
@@ -194,19 +196,14 @@ def _sum_slots(slot_grads, first_slot, n_slots, out, n_footprints, BLOCK: tl.con
     tl.store(out + i[:, None] * GRADIENTS + gradient[None, :], total, mask=valid[:, None] & useful[None, :])
 
 
-_KERNELS: dict = {}  # the kernels, decorated once a process
-
-
 def kernels(device_type: str) -> tuple:
-    """The three kernels: compiled by Triton for a GPU, or, for CPU tensors, run by Triton's interpreter over numpy,
-    which the environment must ask for before Triton is imported (TRITON_INTERPRET=1, as the tests do)."""
+    """The three kernels for tensors on ``device_type``: Triton compiles them for a GPU; CPU tensors run in Triton's
+    interpreter over numpy, which the environment must ask for before Triton is imported (TRITON_INTERPRET=1, as the
+    tests do)."""
     if device_type == "cpu" and os.environ.get("TRITON_INTERPRET") != "1":
         raise RuntimeError("the Triton rasteriser draws GPU tensors; CPU ones only in Triton's interpreter "
                            "(TRITON_INTERPRET=1 before triton is imported); on a CPU use model.rasterizer=tiles")
-    if not _KERNELS:
-        _KERNELS.update(zip(("composite", "backward", "sum_slots"),
-                            (triton.jit(kernel) for kernel in (_composite, _composite_backward, _sum_slots))))
-    return _KERNELS["composite"], _KERNELS["backward"], _KERNELS["sum_slots"]
+    return _composite, _composite_backward, _sum_slots
 
 
 def bin_footprints(packed: torch.Tensor, tiles_x: int, tiles_y: int) -> tuple[torch.Tensor, ...]:
@@ -305,10 +302,4 @@ def rasterize_triton(projection: Projection, colours: torch.Tensor, height: int,
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). CUDA tensors (CPU ones in Triton's interpreter);
     differentiable in the footprints and colours (and the background)."""
-    boxes = pixel_boxes(projection, height, width)
-    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
-    shaded, accumulation = TritonRasterize.apply(projection.means2d, projection.conics, projection.opacities, features,
-                                                 boxes, height, width)
-    rgb = shaded[..., :3] + (1.0 - accumulation)[..., None] * background
-    depth = shaded[..., 3] / accumulation.clamp(min=1e-10)
-    return {"rgb": rgb, "depth": depth, "accumulation": accumulation}
+    return composite_features(TritonRasterize.apply, projection, colours, height, width, background)

@@ -1,9 +1,11 @@
-"""The CPU tile rasteriser (numba) against the dense reference, in values and gradients, on random scenes, an empty
-view, footprints across tile and image borders, pixels that stop early, crowded tiles, antialiasing, masks and
-patches; its gradients the same bit for bit on a second run; the fallback to PyTorch without numba."""
+"""The tile rasterisers, numba's on the CPU and Triton's (on a GPU where there is one, else in Triton's interpreter;
+skipped without Triton), against the dense reference, in values and gradients, on random scenes, an empty view,
+footprints across tile and image borders, pixels that stop early, crowded tiles, antialiasing, masks and patches; the
+numba rasteriser's gradients the same bit for bit on a second run; the fallback to PyTorch without numba."""
 
 from __future__ import annotations
 
+import importlib.util
 import warnings
 
 import numpy as np
@@ -18,6 +20,27 @@ from nerf_lightning.splats.rasterize_tiles import TILE, depth_keys, fade, neares
 from tests.splats.test_rasterize import camera, gaussians
 
 BACKGROUND = torch.tensor([0.2, 0.4, 0.9])
+# where Triton's kernels run in the tests: the GPU, else its interpreter on the CPU (tests/conftest.py asks for it)
+TRITON_DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def rasterize_triton_here(projection: Projection, colours: torch.Tensor, height: int, width: int,
+                          background: torch.Tensor) -> dict[str, torch.Tensor]:
+    """rasterize_triton on :data:`TRITON_DEVICE`, its outputs brought back to the CPU (differentiably: the gradients
+    reach the CPU's leaves)."""
+    from nerf_lightning.splats.rasterize_triton import rasterize_triton
+
+    out = rasterize_triton(Projection(*(value.to(TRITON_DEVICE) for value in projection)), colours.to(TRITON_DEVICE),
+                           height, width, background.to(TRITON_DEVICE))
+    return {key: value.cpu() for key, value in out.items()}
+
+
+# the tile rasterisers the equality tests hold to the dense reference
+TILE_RASTERISERS = [
+    pytest.param(rasterize_tiles, id="numba"),
+    pytest.param(rasterize_triton_here, id="triton",
+                 marks=pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="Triton is not installed")),
+]
 
 
 def drawn(g: dict[str, torch.Tensor], rasteriser, height: int, width: int, antialiased: bool = False,
@@ -51,29 +74,32 @@ def assert_equal_to_dense(g: dict[str, torch.Tensor], height: int, width: int, a
     return tiles
 
 
+@pytest.mark.parametrize("rasteriser", TILE_RASTERISERS)
 @pytest.mark.parametrize("antialiased", [False, True])
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_the_tile_rasteriser_equals_the_dense_reference_in_values_and_gradients(seed, antialiased):
-    out = assert_equal_to_dense(gaussians(seed=seed), 20, 24, antialiased)
+def test_the_tile_rasteriser_equals_the_dense_reference_in_values_and_gradients(seed, antialiased, rasteriser):
+    out = assert_equal_to_dense(gaussians(seed=seed), 20, 24, antialiased, rasteriser=rasteriser)
     assert (out["accumulation"] > 1e-3).float().mean() > 0.3, "the scene should cover a good part of the image"
 
 
-def test_footprints_across_tile_and_image_borders():
+@pytest.mark.parametrize("rasteriser", TILE_RASTERISERS)
+def test_footprints_across_tile_and_image_borders(rasteriser):
     # an image of 2 x 3 tiles and a bit (not a multiple of the tile), large Gaussians reaching over every border
     height, width = 2 * TILE + 5, 3 * TILE + 7
     g = gaussians(n=80, seed=4)
     with torch.no_grad():
         g["log_scales"] += 1.0
         g["means"][:, :2] *= 1.5
-    out = assert_equal_to_dense(g, height, width)
+    out = assert_equal_to_dense(g, height, width, rasteriser=rasteriser)
     assert (out["accumulation"][-1] > 1e-3).any() and (out["accumulation"][:, -1] > 1e-3).any()
 
 
-def test_an_empty_view_shows_the_background_and_passes_no_gradient():
+@pytest.mark.parametrize("rasteriser", TILE_RASTERISERS)
+def test_an_empty_view_shows_the_background_and_passes_no_gradient(rasteriser):
     g = gaussians(n=10, seed=5)
     with torch.no_grad():
         g["means"][:, 2] = -10.0  # all behind the camera
-    out = drawn(g, rasterize_tiles, 20, 24)
+    out = drawn(g, rasteriser, 20, 24)
     torch.testing.assert_close(out["rgb"], BACKGROUND.expand(20, 24, 3))
     assert out["accumulation"].abs().max() == 0
     out["rgb"].sum().backward()
@@ -106,31 +132,34 @@ def assert_projection_gradients_equal(projection: Projection, colours: torch.Ten
     return out["tiles"][0]
 
 
-def test_a_pixel_stops_at_the_transmittance_floor_and_the_rest_is_not_drawn():
+@pytest.mark.parametrize("rasteriser", TILE_RASTERISERS)
+def test_a_pixel_stops_at_the_transmittance_floor_and_the_rest_is_not_drawn(rasteriser):
     # 40 footprints of opacity 0.5: 2^-13 < 1e-4, so the middle pixels stop after 13 and the later ones do nothing
     colours = torch.rand(40, 3, generator=torch.Generator().manual_seed(1)).requires_grad_()
-    out = assert_projection_gradients_equal(stack(40, 0.5), colours)
+    out = assert_projection_gradients_equal(stack(40, 0.5), colours, rasteriser=rasteriser)
     assert out["accumulation"][10, 12] > 1 - 2e-4
     # alphas at the clamp (0.999) too: an opacity above it passes no gradient through the clamp
-    assert_projection_gradients_equal(stack(5, 0.9995, spread=3.0), torch.rand(5, 3).requires_grad_())
+    assert_projection_gradients_equal(stack(5, 0.9995, spread=3.0), torch.rand(5, 3).requires_grad_(), rasteriser=rasteriser)
 
 
-def test_a_tile_with_more_footprints_than_a_block_holds():
+@pytest.mark.parametrize("rasteriser", TILE_RASTERISERS)
+def test_a_tile_with_more_footprints_than_a_block_holds(rasteriser):
     # 700 faint footprints over one tile (a GPU block holds 256): every one is composited, none is lost
     colours = torch.rand(700, 3, generator=torch.Generator().manual_seed(2)).requires_grad_()
-    assert_projection_gradients_equal(stack(700, 0.01, spread=2.0, seed=3), colours)
+    assert_projection_gradients_equal(stack(700, 0.01, spread=2.0, seed=3), colours, rasteriser=rasteriser)
 
 
-def test_a_masked_loss_and_a_patch_get_the_reference_gradients():
+@pytest.mark.parametrize("rasteriser", TILE_RASTERISERS)
+def test_a_masked_loss_and_a_patch_get_the_reference_gradients(rasteriser):
     height, width = 20, 24
     mask = torch.rand(height, width, generator=torch.Generator().manual_seed(3)) > 0.4
-    assert_equal_to_dense(gaussians(seed=6), height, width, mask=mask)
+    assert_equal_to_dense(gaussians(seed=6), height, width, mask=mask, rasteriser=rasteriser)
     # a patch: the view's camera with its principal point moved to the patch's corner, drawn at the patch's size
     K, _ = camera(40, 48)
     patch = K.clone()
     patch[0, 2] -= 13
     patch[1, 2] -= 7
-    assert_equal_to_dense(gaussians(seed=7), height, width, K=patch)
+    assert_equal_to_dense(gaussians(seed=7), height, width, K=patch, rasteriser=rasteriser)
 
 
 def test_the_same_input_gives_the_same_gradients_bit_for_bit():

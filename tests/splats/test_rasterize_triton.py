@@ -1,7 +1,7 @@
-"""The GPU tile rasteriser (Triton) against the dense reference, in values and gradients: random scenes, an empty view,
-footprints across tile and image borders, pixels that stop early, crowded tiles, antialiasing, masks and patches; its
-gradients the same bit for bit on a second run. On a GPU where there is one, else in Triton's interpreter on the CPU
-(the same kernels, run over numpy); skipped where Triton is not installed."""
+"""What is the GPU tile rasteriser's (Triton) own: its gradients the same bit for bit on the device, float64 and bf16
+footprints, and its kernels compiled for a GPU without one. Its equality with the dense reference is tested beside the
+CPU's tile rasteriser (tests/splats/test_rasterize_tiles.py). On a GPU where there is one, else in Triton's
+interpreter on the CPU; skipped where Triton is not installed."""
 
 from __future__ import annotations
 
@@ -12,73 +12,9 @@ triton = pytest.importorskip("triton")
 
 from nerf_lightning.splats.projection import Projection, project  # noqa: E402
 from nerf_lightning.splats.rasterize_dense import rasterize_dense  # noqa: E402
-from nerf_lightning.splats.rasterize_triton import TILE, rasterize_triton  # noqa: E402
+from nerf_lightning.splats.rasterize_triton import rasterize_triton  # noqa: E402
 from tests.splats.test_rasterize import camera, gaussians  # noqa: E402
-from tests.splats.test_rasterize_tiles import (  # noqa: E402
-    BACKGROUND, assert_equal_to_dense, assert_projection_gradients_equal, drawn, stack)
-
-DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
-
-
-def on_device(projection: Projection, colours: torch.Tensor, height: int, width: int,
-              background: torch.Tensor) -> dict[str, torch.Tensor]:
-    """rasterize_triton on :data:`DEVICE`, its outputs brought back to the CPU (differentiably: the gradients reach
-    the CPU's leaves)."""
-    out = rasterize_triton(Projection(*(value.to(DEVICE) for value in projection)), colours.to(DEVICE), height, width,
-                           background.to(DEVICE))
-    return {key: value.cpu() for key, value in out.items()}
-
-
-@pytest.mark.parametrize("antialiased", [False, True])
-@pytest.mark.parametrize("seed", [0, 1])
-def test_the_triton_rasteriser_equals_the_dense_reference_in_values_and_gradients(seed, antialiased):
-    out = assert_equal_to_dense(gaussians(seed=seed), 20, 24, antialiased, rasteriser=on_device)
-    assert (out["accumulation"] > 1e-3).float().mean() > 0.3, "the scene should cover a good part of the image"
-
-
-def test_footprints_across_tile_and_image_borders():
-    height, width = 2 * TILE + 5, 3 * TILE + 7
-    g = gaussians(n=80, seed=4)
-    with torch.no_grad():
-        g["log_scales"] += 1.0
-        g["means"][:, :2] *= 1.5
-    out = assert_equal_to_dense(g, height, width, rasteriser=on_device)
-    assert (out["accumulation"][-1] > 1e-3).any() and (out["accumulation"][:, -1] > 1e-3).any()
-
-
-def test_an_empty_view_shows_the_background_and_passes_no_gradient():
-    g = gaussians(n=10, seed=5)
-    with torch.no_grad():
-        g["means"][:, 2] = -10.0  # all behind the camera
-    out = drawn(g, on_device, 20, 24)
-    torch.testing.assert_close(out["rgb"], BACKGROUND.expand(20, 24, 3))
-    assert out["accumulation"].abs().max() == 0
-    out["rgb"].sum().backward()
-    assert all(value.grad is None or value.grad.abs().max() == 0 for value in g.values())
-
-
-def test_a_pixel_stops_at_the_transmittance_floor_and_the_rest_is_not_drawn():
-    colours = torch.rand(40, 3, generator=torch.Generator().manual_seed(1)).requires_grad_()
-    out = assert_projection_gradients_equal(stack(40, 0.5), colours, rasteriser=on_device)
-    assert out["accumulation"][10, 12] > 1 - 2e-4
-    assert_projection_gradients_equal(stack(5, 0.9995, spread=3.0), torch.rand(5, 3).requires_grad_(), rasteriser=on_device)
-
-
-def test_a_tile_with_more_footprints_than_a_block_holds():
-    # 300 faint footprints over one tile, more than a program's 256 lanes: every one is composited, none is lost
-    colours = torch.rand(300, 3, generator=torch.Generator().manual_seed(2)).requires_grad_()
-    assert_projection_gradients_equal(stack(300, 0.02, spread=2.0, seed=3), colours, rasteriser=on_device)
-
-
-def test_a_masked_loss_and_a_patch_get_the_reference_gradients():
-    height, width = 20, 24
-    mask = torch.rand(height, width, generator=torch.Generator().manual_seed(3)) > 0.4
-    assert_equal_to_dense(gaussians(seed=6), height, width, mask=mask, rasteriser=on_device)
-    K, _ = camera(40, 48)
-    patch = K.clone()
-    patch[0, 2] -= 13
-    patch[1, 2] -= 7
-    assert_equal_to_dense(gaussians(seed=7), height, width, K=patch, rasteriser=on_device)
+from tests.splats.test_rasterize_tiles import BACKGROUND, TRITON_DEVICE as DEVICE, rasterize_triton_here  # noqa: E402
 
 
 def test_the_same_input_gives_the_same_gradients_bit_for_bit():
@@ -109,9 +45,9 @@ def test_a_bfloat16_projection_is_drawn_in_float32_with_gradients_in_its_own_dty
         projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K, c2w, 20, 24)
     half = Projection(projection.ids, *(value.bfloat16().requires_grad_() for value in projection[1:5]), projection.extents)
     colours = g["colours"].detach()[projection.ids]
-    out = on_device(half, colours, 20, 24, BACKGROUND)
+    out = rasterize_triton_here(half, colours, 20, 24, BACKGROUND)
     assert out["rgb"].dtype == torch.float32
-    exact = on_device(Projection(projection.ids, *(value.bfloat16().float() for value in projection[1:5]), projection.extents),
+    exact = rasterize_triton_here(Projection(projection.ids, *(value.bfloat16().float() for value in projection[1:5]), projection.extents),
                       colours, 20, 24, BACKGROUND)
     torch.testing.assert_close(out["rgb"], exact["rgb"])
     out["rgb"].sum().backward()
@@ -123,7 +59,7 @@ def test_float64_inputs_are_drawn_in_float64():
     K, c2w = camera()
     projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K.double(),
                          c2w.double(), 20, 24)
-    out = on_device(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
+    out = rasterize_triton_here(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
     assert out["rgb"].dtype == torch.float64
     reference = rasterize_dense(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
     torch.testing.assert_close(out["rgb"], reference["rgb"], atol=1e-10, rtol=1e-10)
@@ -135,7 +71,6 @@ def compile_kernels(dtype: str) -> None:
     from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
-    from triton.runtime.jit import JITFunction
 
     f = f"*{dtype}"
     limits = {"MAX_ALPHA": MAX_ALPHA, "MIN_ALPHA": MIN_ALPHA}
@@ -150,12 +85,11 @@ def compile_kernels(dtype: str) -> None:
         (kernels._sum_slots, {"slot_grads": f, "first_slot": "*i64", "n_slots": "*i64", "out": f, "n_footprints": "i32"},
          {"BLOCK": kernels.SUM_BLOCK, "GRADIENTS": kernels.GRADIENTS}),
     ]
-    for fn, signature, constants in jobs:
-        jitted = JITFunction(fn)
-        source = ASTSource(fn=jitted, signature={**signature, **{name: "constexpr" for name in constants}},
-                           constexprs={(jitted.arg_names.index(name),): value for name, value in constants.items()})
+    for kernel, signature, constants in jobs:
+        source = ASTSource(fn=kernel, signature={**signature, **{name: "constexpr" for name in constants}},
+                           constexprs={(kernel.arg_names.index(name),): value for name, value in constants.items()})
         compiled = triton.compile(source, target=GPUTarget("cuda", 90, 32), options={"num_warps": 8})
-        assert "cubin" in compiled.asm, fn.__name__
+        assert "cubin" in compiled.asm, kernel.fn.__name__
 
 
 @pytest.mark.skipif(DEVICE == "cuda", reason="on a GPU the other tests compile and run the kernels")

@@ -97,18 +97,20 @@ def chosen_photos(images: Path, count: int | None, folder: Path) -> Path:
 
 
 def changed_masks(masks: Path, change: str, folder: Path) -> Path:
-    """``masks`` (white: the object) eroded (``erode:N``) or dilated (``dilate:N``) by N pixels, written into ``folder``."""
+    """``masks`` (white: the object, read as ``nerf-process-data`` reads them) eroded (``erode:N``) or dilated
+    (``dilate:N``) by N pixels, written into ``folder``."""
     import imageio.v3 as iio
     import numpy as np
     import torch
+
+    from nerf_lightning.capture.images import read_mask
 
     kind, _, size = change.partition(":")
     if kind not in ("erode", "dilate") or not size.isdigit():
         raise SystemExit(f"--mask-change must be erode:N or dilate:N (N pixels), got {change!r}")
     folder.mkdir(parents=True)
     for path in sorted(masks.iterdir()):
-        mask = iio.imread(path)
-        white = torch.from_numpy((mask if mask.ndim == 2 else mask[..., 0]) > 127).float()[None, None]
+        white = torch.from_numpy(read_mask(path)).float()[None, None]
         window = 2 * int(size) + 1
         if kind == "dilate":
             white = torch.nn.functional.max_pool2d(white, window, stride=1, padding=int(size))

@@ -193,8 +193,9 @@ def write_report(results_dir: Path, report: Path, readme: Path | None = None) ->
                   "`scripts/bench_process_data.py`, one JSON a row in "
                   f"`{os.path.relpath(results_dir / 'posing', report.parent) if results_dir.is_absolute() else results_dir / 'posing'}/`).", "",
                   *posing_table(posing), "", "Reproduce:", ""]
-        lines += [f"- {r['capture']}{'' if not r.get('masks') else ' with masks' if masks_label(r) == 'yes' else ', masks ' + masks_label(r)}: "
-                  f"`{' '.join(r['command'])}`" for r in posing]
+        described = {"no": "", "yes": " with masks"}
+        lines += [f"- {r['capture']}{described.get(masks_label(r), ', masks ' + masks_label(r))}: `{' '.join(r['command'])}`"
+                  for r in posing]
         lines.append("")
     missing = unmeasured(rows)
     if missing:

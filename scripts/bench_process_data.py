@@ -166,9 +166,9 @@ def main() -> None:
         head = {**start_result("cpu"), "benchmark": "process_data", "root": str(args.root),
                 "capture": "procedural turntable" if args.turntable else args.root.name, "images": args.images,
                 "masks": args.masks, "mask_change": args.mask_change, "photos": args.photos, "process_capture": settings}
-        try:  # min_registered=0: the photos that register are compared, however few
+        try:  # min_registered=0, min_mask_agreement=0: the photos that register are compared, however few, however wrong
             report = process_capture(images, work, mapper=args.mapper, max_size=args.max_size, progress=False, seed=0, masks=masks,
-                                     **{"min_registered": 0.0, **settings})
+                                     **{"min_registered": 0.0, "min_mask_agreement": 0.0, **settings})
         except ValueError as error:  # fewer than 3 registered: nothing to compare, which is the finding
             finish({**head, "images_given": len(list(images.iterdir())), "registered": None, "failed": str(error),
                     "total_s": time.perf_counter() - started}, args.out)
@@ -187,6 +187,8 @@ def main() -> None:
         **{key: report[key] for key in ("mean_reprojection_error_px", "mean_track_length", "points", "camera", "verified_matches_explained", "mappers",
                                             "matches", "focal_priors")},
         "settings": {key: report[key] for key in ("matcher", "mapper", "camera_model", "single_camera", "max_size")},
+        # with masks: the masks' agreement with the poses, which nerf-process-data stops on under min_mask_agreement
+        "silhouettes": {key: value for key, value in report["silhouettes"].items() if key != "coverage"} if "silhouettes" in report else None,
         "total_s": total, "seconds": report["seconds"],
         "mappers_over_seeds": seeds, "per_image": errors["per_image"],
     }

@@ -53,6 +53,7 @@ from nerf_lightning.capture.images import (
     write_capture_mask,
     write_downscaled,
 )
+from nerf_lightning.capture.silhouettes import silhouette_agreement
 from nerf_lightning.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
 from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_atomic, write_json
@@ -188,6 +189,20 @@ def check_registered(registered: int, unregistered: list[str], given: int, sourc
                          f"{change}; or min_registered=0 to keep the {registered} that did")
 
 
+def check_silhouettes(agreement: dict[str, Any], registered: int, source: Path, min_mask_agreement: float) -> None:
+    """ValueError, one line, where the median registered photo's mask agrees with the poses less than
+    ``min_mask_agreement`` (:func:`~nerf_lightning.capture.silhouettes.silhouette_agreement`): COLMAP's model is
+    wrong, however many photos it registered."""
+    median = agreement["median_coverage"]
+    if median < min_mask_agreement:
+        raise ValueError(f"COLMAP registered {registered} images of {source}, but the poses do not agree with the masks: in the "
+                         f"median photo only {100.0 * median:.0f}% of the mask's rays meet the object all the masks carve "
+                         f"(under min_mask_agreement={min_mask_agreement:g}), so the cameras are in the wrong places; "
+                         "the photos are likely too far apart: take one every 5 to 10 degrees round the object, with each "
+                         "photo overlapping its neighbours by two thirds (docs/guides/real-captures.md); or min_mask_agreement=0 "
+                         "to keep this model")
+
+
 def write_points_ply(path: Path, positions: np.ndarray, colours: np.ndarray) -> Path:
     """(P, 3) positions and (P, 3) uint8 RGB colours as a binary PLY point cloud (trimesh)."""
     cloud = trimesh.PointCloud(positions, colors=np.concatenate([colours, np.full((len(colours), 1), 255, np.uint8)], axis=1))
@@ -233,6 +248,7 @@ def process_capture(
     escalate: bool = True,
     seed: int = 0,
     masks: str | Path | None = None,
+    min_mask_agreement: float = 0.7,
     mask_object: str = "white",
     progress: bool = True,
     verbose: bool = False,
@@ -262,6 +278,9 @@ def process_capture(
             video.
         mask_object: which mask pixels are the object: ``white`` (at least half white; in a mask of 0s and 1s, the
             non-zero ones) or ``black`` (the rest).
+        min_mask_agreement: with masks, stop with an error when the median photo's mask agrees with the model's
+            poses less than this (:mod:`~nerf_lightning.capture.silhouettes`: the fraction of its mask's rays that
+            meet the masks' visual hull); 0 keeps the model whatever it is.
         progress: progress bars on stderr.
         verbose: COLMAP's own log on stderr.
     Returns:
@@ -291,6 +310,8 @@ def process_capture(
         raise ValueError(f"min_registered must be a fraction between 0 and 1, got {min_registered}")
     if mask_object not in MASK_OBJECTS:
         raise ValueError(f"mask_object must be {' or '.join(MASK_OBJECTS)}, got '{mask_object}'")
+    if not 0.0 <= min_mask_agreement <= 1.0:
+        raise ValueError(f"min_mask_agreement must be a fraction between 0 and 1, got {min_mask_agreement}")
     mask_folder = Path(masks).expanduser() if masks not in (None, "") else None
     if mask_folder is not None and source.is_file():
         raise ValueError(f"masks are not supported with a video input ({source.name}): give its frames as a folder of photos "
@@ -355,8 +376,14 @@ def process_capture(
 
         write_started = time.perf_counter()
         transforms = reconstruction_to_transforms(model, mask_folder="masks" if fractions else None)
-        write_points_ply(staging / transforms["ply_file_path"], *sparse_points(model))
+        positions, colours = sparse_points(model)
+        write_points_ply(staging / transforms["ply_file_path"], positions, colours)
         seconds["writing"] = time.perf_counter() - write_started
+        if fractions:
+            check_started = time.perf_counter()
+            report["silhouettes"] = silhouette_agreement(transforms, positions, staging, list(downscales), seed)
+            seconds["silhouettes"] = time.perf_counter() - check_started
+            check_silhouettes(report["silhouettes"], len(posed), source, min_mask_agreement)
         seconds["total"] = time.perf_counter() - started
         report.update({
             "images_given": len(names), "registered": len(posed), "unregistered": unregistered, "matcher": chosen,
@@ -406,4 +433,10 @@ def format_report(report: dict[str, Any]) -> str:
     if masks:
         lines.insert(3, f"masks: {masks['count']} from {masks['folder']} ({masks['mask_object']} = object), on average "
                         f"{100.0 * masks['mean_object_fraction']:.0f}% of a photo; features matched on the object alone")
+    if "silhouettes" in report:
+        agreement = report["silhouettes"]
+        below = agreement["views_below"]
+        lines.insert(4, f"masks and poses agree: in the median photo {100.0 * agreement['median_coverage']:.0f}% of the mask's rays meet "
+                        "the object the masks carve" + (f"; under half in {listed(below)} (posed wrong, or a mask that does not fit "
+                                                        "its photo)" if below else ""))
     return "\n".join(lines)

@@ -259,6 +259,7 @@ def check_process_data_keys(cfg: DictConfig) -> None:
     check_integer(cfg, "seed", *SEED_RANGE)
     check_text(cfg, "masks", "a folder with a mask for each photo", null=True)
     check_choice(cfg, "mask_object", MASK_OBJECTS)
+    check_number(cfg, "min_mask_agreement", low=0.0, high=1.0)
     check_bool(cfg, "progress")
     check_bool(cfg, "verbose")
 

@@ -29,6 +29,52 @@ from nerf_lightning.data.scene import Scene, Views
 MIN_SEEING = 3
 
 
+def mask_votes(points: torch.Tensor, c2w: torch.Tensor, K: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """How many views each point lies in front of, and inside how many of those views' masks it falls.
+
+    Args:
+        points: (P, 3) in the cameras' world.
+        c2w: (N, 4, 4) OpenCV camera-to-world; K: (N, 3, 3) of the masks' pixels.
+        masks: (N, H, W) bool, True on the object. A point outside a photo's frame counts as outside its mask (an
+            object capture keeps its object in frame).
+    Returns:
+        seen (P,) int32, inside (P,) int32.
+    """
+    count, height, width = masks.shape
+    w2c = torch.linalg.inv(c2w.double())
+    K = K.double()
+    chunk = max(1024, 2**22 // count)  # points projected at once: a few hundred MB whatever the views' count
+    seen = torch.zeros(len(points), dtype=torch.int32)
+    inside = torch.zeros(len(points), dtype=torch.int32)
+    for start in range(0, len(points), chunk):
+        part = points[start:start + chunk].double()
+        camera = part @ w2c[:, :3, :3].transpose(1, 2) + w2c[:, None, :3, 3]  # (N, P, 3)
+        z = camera[..., 2]
+        pixels = camera @ K.transpose(1, 2)
+        u = torch.floor(pixels[..., 0] / z.clamp(min=1e-9)).long()
+        v = torch.floor(pixels[..., 1] / z.clamp(min=1e-9)).long()
+        in_front = z > 1e-6
+        visible = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        view_index = torch.arange(count)[:, None].expand_as(u)
+        hit = torch.zeros_like(visible)
+        hit[visible] = masks[view_index[visible], v[visible], u[visible]]
+        seen[start:start + chunk] = in_front.sum(0, dtype=torch.int32)
+        inside[start:start + chunk] = hit.sum(0, dtype=torch.int32)
+    return seen, inside
+
+
+def visual_hull(c2w: torch.Tensor, K: torch.Tensor, masks: torch.Tensor, low: torch.Tensor, high: torch.Tensor,
+                resolution: int = 96, agree: float = 0.9) -> torch.Tensor:
+    """(R, R, R) bool, R = ``resolution``: the masks' visual hull on a grid of R points a side from ``low`` (3,) to
+    ``high`` (3,) (axis order x, y, z): a point is in it where at least :data:`MIN_SEEING` views lie behind it and it
+    falls inside the masks of at least ``agree`` of them (not all: a rough mask that cuts a little off the object in
+    one photo would cut the object). Cameras and masks as :func:`mask_votes` takes them."""
+    ticks = [torch.linspace(float(low[axis]), float(high[axis]), resolution, dtype=torch.float64) for axis in range(3)]
+    grid = torch.stack(torch.meshgrid(*ticks, indexing="ij"), dim=-1).reshape(-1, 3)
+    seen, inside = mask_votes(grid, c2w, K, masks)
+    return ((seen >= MIN_SEEING) & (inside >= agree * seen.double())).reshape(resolution, resolution, resolution)
+
+
 def visual_hull_box(views: Views, resolution: int = 96, agree: float = 0.9, margin: float = 0.1) -> torch.Tensor:
     """(6,) float32 box (xmin, ymin, zmin, xmax, ymax, zmax) in the views' world of the masks' visual hull.
 
@@ -44,37 +90,57 @@ def visual_hull_box(views: Views, resolution: int = 96, agree: float = 0.9, marg
     """
     if views.masks is None:
         raise ValueError("data.object_box=visual_hull needs the capture's masks (a masks/ folder beside the images)")
-    centres = views.c2w[:, :3, 3].double()
-    reach = float(centres.abs().max()) * 1.05
-    ticks = torch.linspace(-reach, reach, resolution, dtype=torch.float64)
-    cell = float(ticks[1] - ticks[0])
-    grid = torch.stack(torch.meshgrid(ticks, ticks, ticks, indexing="ij"), dim=-1).reshape(-1, 3)
-    w2c = torch.linalg.inv(views.c2w.double())
-    K = views.K.double()
-    chunk = max(1024, 2**22 // len(views))  # points projected at once: a few hundred MB whatever the views' count
-    seen = torch.zeros(len(grid), dtype=torch.int32)
-    inside = torch.zeros(len(grid), dtype=torch.int32)
-    for start in range(0, len(grid), chunk):
-        points = grid[start:start + chunk]
-        camera = points @ w2c[:, :3, :3].transpose(1, 2) + w2c[:, None, :3, 3]  # (N, P, 3)
-        z = camera[..., 2]
-        pixels = camera @ K.transpose(1, 2)
-        u = torch.floor(pixels[..., 0] / z.clamp(min=1e-9)).long()
-        v = torch.floor(pixels[..., 1] / z.clamp(min=1e-9)).long()
-        in_front = z > 1e-6
-        visible = in_front & (u >= 0) & (u < views.width) & (v >= 0) & (v < views.height)
-        view_index = torch.arange(len(views))[:, None].expand_as(u)
-        hit = torch.zeros_like(visible)
-        hit[visible] = views.masks[view_index[visible], v[visible], u[visible]]
-        seen[start:start + chunk] = in_front.sum(0, dtype=torch.int32)
-        inside[start:start + chunk] = hit.sum(0, dtype=torch.int32)
-    kept = (seen >= MIN_SEEING) & (inside >= agree * seen.double())
-    if not kept.any():
+    reach = float(views.c2w[:, :3, 3].abs().max()) * 1.05
+    low, high = torch.full((3,), -reach, dtype=torch.float64), torch.full((3,), reach, dtype=torch.float64)
+    hull = visual_hull(views.c2w, views.K, views.masks, low, high, resolution, agree)
+    if not hull.any():
         raise ValueError(f"data.object_box=visual_hull: no point lies inside the masks of {agree:.0%} of the views that see it "
                          "(masks all black, or masks that do not match the poses); train without data.object_box")
-    low, high = grid[kept].min(0).values, grid[kept].max(0).values
+    cell = 2.0 * reach / (resolution - 1)
+    occupied = torch.nonzero(hull).double() * cell - reach
+    low, high = occupied.min(0).values, occupied.max(0).values
     widen = margin * (high - low) + cell
     return torch.cat([low - widen, high + widen]).float()
+
+
+def silhouette_coverage(c2w: torch.Tensor, K: torch.Tensor, masks: torch.Tensor, hull: torch.Tensor, low: torch.Tensor,
+                        high: torch.Tensor, rays: int = 256, generator: torch.Generator | None = None) -> torch.Tensor:
+    """(N,) float64: of each view, the fraction of its mask's pixels whose rays meet the ``hull`` (:func:`visual_hull`
+    on the grid from ``low`` to ``high``), from ``rays`` of its mask's pixels drawn at random.
+
+    Where the poses are right, the hull is the object and each mask's rays all meet it: near 1, less where a mask
+    is rough. Where they are wrong, the masks do not agree: the hull is a scrap, or empty, and most rays miss it. A
+    view with no mask pixel gets 0."""
+    count, height, width = masks.shape
+    resolution = hull.shape[0]
+    low, high = low.double(), high.double()
+    cell = (high - low) / (resolution - 1)
+    c2w, K = c2w.double(), K.double()
+    coverage = torch.zeros(count, dtype=torch.float64)
+    for view in range(count):
+        pixels = torch.nonzero(masks[view].reshape(-1)).squeeze(1)
+        if len(pixels) == 0:
+            continue
+        drawn = pixels[torch.randint(len(pixels), (rays,), generator=generator)]
+        uv = torch.stack([(drawn % width).double() + 0.5, (drawn // width).double() + 0.5, torch.ones(rays, dtype=torch.float64)], -1)
+        directions = (uv @ torch.linalg.inv(K[view]).T) @ c2w[view, :3, :3].T
+        directions = directions / directions.norm(dim=-1, keepdim=True)
+        origin = c2w[view, :3, 3]
+        # the ray's stretch inside the grid's box (slabs), walked in steps of half the smallest cell
+        inverse = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
+        t0, t1 = (low - origin) * inverse, (high - origin) * inverse
+        enter = torch.minimum(t0, t1).amax(-1).clamp(min=0.0)
+        leave = torch.maximum(t0, t1).amin(-1)
+        steps = int(torch.ceil(2.0 * (high - low).norm() / cell.min())) + 1
+        fractions = torch.linspace(0.0, 1.0, steps, dtype=torch.float64)
+        t = enter[:, None] + (leave - enter).clamp(min=0.0)[:, None] * fractions  # (rays, steps)
+        points = origin + t[..., None] * directions[:, None]
+        index = torch.round((points - low) / cell).long()
+        valid = ((index >= 0) & (index < resolution)).all(-1) & (leave > enter)[:, None]
+        index = index.clamp(0, resolution - 1)
+        met = (hull[index[..., 0], index[..., 1], index[..., 2]] & valid).any(-1)
+        coverage[view] = met.double().mean()
+    return coverage
 
 
 def box_similarity(box: torch.Tensor) -> torch.Tensor:

@@ -70,18 +70,21 @@ def masks_label(result: dict[str, Any]) -> str:
 
 def posing_table(results: list[dict[str, Any]]) -> list[str]:
     """``scripts/bench_process_data.py``'s JSONs as one table: photos registered and their cameras' errors against
-    reference poses after a similarity alignment, and the seconds."""
+    reference poses after a similarity alignment, the masks' agreement with the poses (the median photo's, which
+    ``nerf-process-data`` stops on under ``min_mask_agreement``; – where the row has no masks or predates the check),
+    and the seconds."""
     lines = [
         "| capture | masks | photos | registered | centre error, median / max (% of spread) | rotation error, median / max (deg) "
-        "| seconds | machine | date |",
-        "|---|---|---:|---:|---:|---:|---:|---|---|",
+        "| masks agree (median) | seconds | machine | date |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     for r in results:
+        agree = (r.get("silhouettes") or {}).get("median_coverage")
         lines.append(
             f"| {r['capture']}{'' if r.get('images', 'images') == 'images' else ' ' + r['images'] + '/'} | {masks_label(r)} | {r['images_given']} | {_number(r.get('registered'), 0)} "
             f"| {_number(r.get('median_position_error_percent_of_spread'), 2)} / {_number(r.get('max_position_error_percent_of_spread'), 2)} "
             f"| {_number(r.get('median_rotation_error_deg'), 2)} / {_number(r.get('max_rotation_error_deg'), 2)} "
-            f"| {r['total_s']:.0f} | {r['machine']['name']} | {r['date'][:10]} |"
+            f"| {'–' if agree is None else f'{100.0 * agree:.0f} %'} | {r['total_s']:.0f} | {r['machine']['name']} | {r['date'][:10]} |"
         )
     return lines
 

@@ -21,6 +21,7 @@ import torch
 from PIL import Image
 
 from nerf_lightning.data.object_box import silhouette_coverage, visual_hull
+from nerf_lightning.geometry.cameras import opengl_to_opencv
 
 # the masks are read at about this long side (the copy of the capture's smallest downscale that reaches it)
 MASK_SIDE = 480
@@ -29,13 +30,11 @@ RESOLUTION = 64
 BOX_MARGIN = 0.5
 # a view whose mask's rays meet the hull less than this is one the poses place wrong
 VIEW_BELOW = 0.5
-# OpenGL (nerfstudio's transform_matrix) to OpenCV camera axes: y and z flipped
-GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def mask_copy(staging: Path, downscales: list[int], size: tuple[int, int]) -> tuple[Path, int]:
-    """The masks folder to read (``masks`` or ``masks_<k>``) and its factor: the largest k whose masks keep a long
-    side of :data:`MASK_SIDE` or more."""
+    """The masks folder to read (``masks`` or ``masks_<k>``) and its factor: the largest k whose masks of a photo of
+    ``size`` (width, height) keep a long side of :data:`MASK_SIDE` or more."""
     usable = [k for k in sorted(downscales, reverse=True) if max(size) / k >= MASK_SIDE and (staging / f"masks_{k}").is_dir()]
     return (staging / f"masks_{usable[0]}", usable[0]) if usable else (staging / "masks", 1)
 
@@ -46,24 +45,28 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
     median, and the photos under :data:`VIEW_BELOW`.
 
     Args:
-        transforms: what :func:`~nerf_lightning.capture.colmap.reconstruction_to_transforms` wrote (frames with
-            ``transform_matrix`` and ``mask_path``; the shared camera's ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``).
+        transforms: what :func:`~nerf_lightning.capture.colmap.reconstruction_to_transforms` wrote: frames with
+            ``transform_matrix`` (OpenGL) and ``mask_path``, the intrinsics (``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``,
+            ``h``) shared at the top or a frame's own.
         points: (P, 3) the model's sparse points in its world.
         staging: the folder holding the written ``masks/`` and ``masks_<k>/``.
         downscales: the factors of those copies.
     """
-    width, height = int(transforms["w"]), int(transforms["h"])
-    folder, factor = mask_copy(staging, list(downscales), (width, height))
-    frames = transforms["frames"]
-    masks = torch.from_numpy(np.stack([np.asarray(Image.open(folder / Path(frame["mask_path"]).name)) > 127 for frame in frames]))
-    if masks.ndim == 4:  # a mask saved with colour channels
-        masks = masks.any(-1)
-    K = torch.tensor([[transforms["fl_x"] / factor, 0.0, transforms["cx"] / factor], [0.0, transforms["fl_y"] / factor, transforms["cy"] / factor],
-                      [0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(frames), 3, 3)
-    c2w = torch.from_numpy(np.stack([np.asarray(frame["transform_matrix"], dtype=np.float64) @ GL_TO_CV for frame in frames]))
-    if len(points) >= 4:
+    frames = [{**transforms, **frame} for frame in transforms["frames"]]  # a frame's own intrinsics where it has them
+    largest = max((int(frame["w"]), int(frame["h"])) for frame in frames)
+    folder, factor = mask_copy(staging, list(downscales), largest)
+    read = [np.asarray(Image.open(folder / Path(frame["mask_path"]).name).convert("L")) > 127 for frame in frames]
+    # photos of several sizes (a camera each): masks padded with background, which counts as outside the frame
+    height, width = max(mask.shape[0] for mask in read), max(mask.shape[1] for mask in read)
+    masks = torch.zeros(len(read), height, width, dtype=torch.bool)
+    for index, mask in enumerate(read):
+        masks[index, :mask.shape[0], :mask.shape[1]] = torch.from_numpy(mask)
+    K = torch.tensor([[[frame["fl_x"] / factor, 0.0, frame["cx"] / factor], [0.0, frame["fl_y"] / factor, frame["cy"] / factor],
+                       [0.0, 0.0, 1.0]] for frame in frames], dtype=torch.float64)
+    c2w = opengl_to_opencv(torch.tensor([frame["transform_matrix"] for frame in frames], dtype=torch.float64))
+    if len(points) >= 4:  # where the object is: its matched points, the stray ones left out
         low, high = np.percentile(points, 2, axis=0), np.percentile(points, 98, axis=0)
-    else:  # no points to say where the object is: the cameras' box
+    else:
         centres = c2w[:, :3, 3].numpy()
         low, high = centres.min(0), centres.max(0)
     widen = BOX_MARGIN * (high - low).max()
@@ -74,4 +77,4 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
     return {"median_coverage": round(float(coverage.median()), 4),
             "coverage": {name: round(float(value), 4) for name, value in zip(names, coverage)},
             "views_below": [name for name, value in zip(names, coverage) if value < VIEW_BELOW],
-            "masks_read": f"{folder.name} ({int(masks.shape[2])}x{int(masks.shape[1])})"}
+            "masks_read": f"{folder.name} (up to {width}x{height})"}

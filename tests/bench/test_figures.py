@@ -43,3 +43,16 @@ def test_the_gpu_check_suite_loads_and_its_rows_compose():
     assert all(row.device == "cuda" for row in suite.rows) and suite.rows[0].marks == (1.0, 2.0)
     for row in suite.rows:
         compose_config([f"experiment={row.preset}", f"data.root=/nowhere/{row.data}", *row.overrides])
+
+
+def test_the_posing_table_says_how_well_the_masks_agree_where_a_row_measured_it():
+    from nerf_lightning.bench.report import posing_table
+
+    row = {"capture": "moldGoldCape", "images": "images_4", "masks": "masks_4", "images_given": 20, "registered": 15,
+           "median_position_error_percent_of_spread": 68.35, "max_position_error_percent_of_spread": 151.16,
+           "median_rotation_error_deg": 79.35, "max_rotation_error_deg": 152.54, "total_s": 165.0,
+           "machine": {"name": "2 cores"}, "date": "2026-11-27T18:00:00"}
+    lines = posing_table([{**row, "silhouettes": {"median_coverage": 0.0, "views_below": ["a.jpg"]}}, row])
+    assert lines[0].count("|") == lines[1].count("|") == lines[2].count("|") == lines[3].count("|")
+    assert "| 79.35 / 152.54 | 0 % | 165 |" in lines[2]
+    assert "| 79.35 / 152.54 | – | 165 |" in lines[3]  # a row from before the check

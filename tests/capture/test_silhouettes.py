@@ -12,8 +12,9 @@ import torch
 from PIL import Image
 
 from nerf_lightning.capture.process import check_silhouettes
-from nerf_lightning.capture.silhouettes import GL_TO_CV, silhouette_agreement
+from nerf_lightning.capture.silhouettes import silhouette_agreement
 from nerf_lightning.data.formats.turntable import OBJECT_BOUNDS, load_turntable
+from nerf_lightning.geometry.cameras import opengl_to_opencv
 
 
 @pytest.fixture(scope="module")
@@ -21,19 +22,20 @@ def turntable(tmp_path_factory):
     return load_turntable(cache_dir=tmp_path_factory.mktemp("turntable"))
 
 
-def as_written(views, c2w: torch.Tensor, folder: Path) -> dict:
+def as_written(views, c2w: torch.Tensor, folder: Path, camera_each: bool = False) -> dict:
     """The views as nerf-process-data writes them: masks/<name>.png (255 on the object) and a transforms dict with
-    OpenGL camera-to-worlds ``c2w`` (N, 4, 4) (OpenCV) and the shared camera."""
+    the OpenGL camera-to-worlds of ``c2w`` (N, 4, 4) (OpenCV) and the camera's intrinsics at the top (one camera) or
+    in each frame (``camera_each``: single_camera=false)."""
     (folder / "masks").mkdir(parents=True, exist_ok=True)
+    K = views.K[0].double()
+    camera = {"w": views.width, "h": views.height, "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}
     frames = []
     for index in range(len(views)):
         name = f"view_{index:02d}"
         Image.fromarray(views.masks[index].numpy().astype(np.uint8) * 255).save(folder / "masks" / f"{name}.png")
         frames.append({"file_path": f"images/{name}.png", "mask_path": f"masks/{name}.png",
-                       "transform_matrix": (c2w[index].double().numpy() @ GL_TO_CV).tolist()})
-    K = views.K[0].double()
-    return {"w": views.width, "h": views.height, "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]), "cx": float(K[0, 2]),
-            "cy": float(K[1, 2]), "frames": frames}
+                       "transform_matrix": opengl_to_opencv(c2w[index].double()).tolist(), **(camera if camera_each else {})})
+    return {"frames": frames, **({} if camera_each else camera)}
 
 
 def object_points(scene, count: int = 200) -> np.ndarray:
@@ -53,12 +55,13 @@ def turned(c2w: torch.Tensor, degrees: float) -> torch.Tensor:
     return out
 
 
-def test_the_true_poses_agree_with_their_masks(turntable, tmp_path):
+@pytest.mark.parametrize("camera_each", [False, True])
+def test_the_true_poses_agree_with_their_masks(turntable, tmp_path, camera_each):
     views = turntable.train
-    agreement = silhouette_agreement(as_written(views, views.c2w, tmp_path), object_points(turntable), tmp_path, [])
+    agreement = silhouette_agreement(as_written(views, views.c2w, tmp_path, camera_each), object_points(turntable), tmp_path, [])
     assert agreement["median_coverage"] > 0.9, agreement
     assert agreement["views_below"] == []
-    assert len(agreement["coverage"]) == len(views) and agreement["masks_read"].startswith("masks (")
+    assert len(agreement["coverage"]) == len(views) and agreement["masks_read"] == "masks (up to 192x192)"
 
 
 def test_poses_strung_wrong_do_not_and_one_photo_posed_wrong_is_named(turntable, tmp_path):

@@ -8,7 +8,8 @@ the object, and every mask pixel's ray meets it. Where they are wrong, the masks
 or nothing, and most rays miss it (:func:`~nerf_lightning.data.object_box.silhouette_coverage`).
 
 The hull is carved on a grid over the sparse points' box (the points were matched inside the masks, so they lie on
-the object, in a wrong model too), from the smallest mask copies of about :data:`MASK_SIDE` pixels.
+the object, in a wrong model too; where the hull reaches the box's faces, in a wider box), from masks of about
+:data:`MASK_SIDE` pixels (the smallest copy that reaches it, or the masks cut to blocks).
 """
 
 from __future__ import annotations
@@ -28,15 +29,41 @@ MASK_SIDE = 480
 # the hull's grid, points a side over the sparse points' box, widened by BOX_MARGIN of its size a side
 RESOLUTION = 64
 BOX_MARGIN = 0.5
+# a hull that touches its box's faces is carved again in a box twice as wide, this many times at most
+GROW_TRIES = 3
 # a view whose mask's rays meet the hull less than this is one the poses place wrong
 VIEW_BELOW = 0.5
 
 
-def mask_copy(staging: Path, downscales: list[int], size: tuple[int, int]) -> tuple[Path, int]:
-    """The masks folder to read (``masks`` or ``masks_<k>``) and its factor: the largest k whose masks of a photo of
-    ``size`` (width, height) keep a long side of :data:`MASK_SIDE` or more."""
-    usable = [k for k in sorted(downscales, reverse=True) if max(size) / k >= MASK_SIDE and (staging / f"masks_{k}").is_dir()]
+def mask_copy(staging: Path, downscales: list[int], long_side: int) -> tuple[Path, int]:
+    """The masks folder to read (``masks`` or ``masks_<k>``) and its factor: the largest k whose masks of photos
+    ``long_side`` pixels long keep a long side of :data:`MASK_SIDE` or more."""
+    usable = [k for k in sorted(downscales, reverse=True) if long_side / k >= MASK_SIDE and (staging / f"masks_{k}").is_dir()]
     return (staging / f"masks_{usable[0]}", usable[0]) if usable else (staging / "masks", 1)
+
+
+def block_mask(mask: np.ndarray, blocks: int) -> np.ndarray:
+    """(H, W) bool -> (H // blocks, W // blocks): a pixel is the object where at least half its block is (as the
+    ``masks_<k>/`` copies are made: blocks from the top left)."""
+    if blocks == 1:
+        return mask
+    height, width = mask.shape[0] // blocks, mask.shape[1] // blocks
+    return mask[:height * blocks, :width * blocks].reshape(height, blocks, width, blocks).mean(axis=(1, 3)) >= 0.5
+
+
+def object_box(points: np.ndarray, c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(3,), (3,) float64: the box to carve the hull in: the sparse points' (P, 3) (those between their 2nd and 98th
+    percentiles: strays left out), widened by :data:`BOX_MARGIN` of its longest side; the cameras' (c2w (N, 4, 4)) where
+    the points are too few or all in one place."""
+    low = high = None
+    if len(points) >= 4:
+        low, high = np.percentile(points, 2, axis=0), np.percentile(points, 98, axis=0)
+    centres = c2w[:, :3, 3].numpy()
+    spread = float((centres.max(0) - centres.min(0)).max())
+    if low is None or (high - low).max() <= 1e-3 * spread:
+        low, high = centres.min(0), centres.max(0)
+    widen = BOX_MARGIN * (high - low).max()
+    return torch.from_numpy(low - widen), torch.from_numpy(high + widen)
 
 
 def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging: Path, downscales: list[int],
@@ -53,9 +80,12 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
         downscales: the factors of those copies.
     """
     frames = [{**transforms, **frame} for frame in transforms["frames"]]  # a frame's own intrinsics where it has them
-    largest = max((int(frame["w"]), int(frame["h"])) for frame in frames)
+    largest = max(max(int(frame["w"]), int(frame["h"])) for frame in frames)
     folder, factor = mask_copy(staging, list(downscales), largest)
-    read = [np.asarray(Image.open(folder / Path(frame["mask_path"]).name).convert("L")) > 127 for frame in frames]
+    # no copy small enough (downscales=[]): each mask cut to blocks as it is read, so that 12 MP photos cost no more
+    blocks = max(1, largest // factor // MASK_SIDE)
+    read = [block_mask(np.asarray(Image.open(folder / Path(frame["mask_path"]).name).convert("L")) > 127, blocks) for frame in frames]
+    factor *= blocks
     # photos of several sizes (a camera each): masks padded with background, which counts as outside the frame
     height, width = max(mask.shape[0] for mask in read), max(mask.shape[1] for mask in read)
     masks = torch.zeros(len(read), height, width, dtype=torch.bool)
@@ -64,17 +94,17 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
     K = torch.tensor([[[frame["fl_x"] / factor, 0.0, frame["cx"] / factor], [0.0, frame["fl_y"] / factor, frame["cy"] / factor],
                        [0.0, 0.0, 1.0]] for frame in frames], dtype=torch.float64)
     c2w = opengl_to_opencv(torch.tensor([frame["transform_matrix"] for frame in frames], dtype=torch.float64))
-    if len(points) >= 4:  # where the object is: its matched points, the stray ones left out
-        low, high = np.percentile(points, 2, axis=0), np.percentile(points, 98, axis=0)
-    else:
-        centres = c2w[:, :3, 3].numpy()
-        low, high = centres.min(0), centres.max(0)
-    widen = BOX_MARGIN * (high - low).max()
-    low, high = torch.from_numpy(low - widen), torch.from_numpy(high + widen)
-    hull = visual_hull(c2w, K, masks, low, high, RESOLUTION)
+    low, high = object_box(points, c2w)
+    for attempt in range(GROW_TRIES):  # a hull cut off by its grid's box (points on a part of the object alone): a wider box
+        hull = visual_hull(c2w, K, masks, low, high, RESOLUTION)
+        touches = hull[0].any() or hull[-1].any() or hull[:, 0].any() or hull[:, -1].any() or hull[:, :, 0].any() or hull[:, :, -1].any()
+        if not touches or attempt == GROW_TRIES - 1:
+            break
+        centre, half = (low + high) / 2, (high - low) / 2
+        low, high = centre - 2.0 * half, centre + 2.0 * half
     coverage = silhouette_coverage(c2w, K, masks, hull, low, high, generator=torch.Generator().manual_seed(seed))
     names = [Path(frame["file_path"]).name for frame in frames]
     return {"median_coverage": round(float(coverage.median()), 4),
             "coverage": {name: round(float(value), 4) for name, value in zip(names, coverage)},
             "views_below": [name for name, value in zip(names, coverage) if value < VIEW_BELOW],
-            "masks_read": f"{folder.name} (up to {width}x{height})"}
+            "masks_read": f"{folder.name}" + (f" in blocks of {blocks}" if blocks > 1 else "") + f" (up to {width}x{height})"}

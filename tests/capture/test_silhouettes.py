@@ -14,7 +14,6 @@ from PIL import Image
 from nerf_lightning.capture.process import check_silhouettes
 from nerf_lightning.capture.silhouettes import silhouette_agreement
 from nerf_lightning.data.formats.turntable import OBJECT_BOUNDS, load_turntable
-from nerf_lightning.geometry.cameras import opengl_to_opencv
 
 
 @pytest.fixture(scope="module")
@@ -34,13 +33,22 @@ def as_written(views, c2w: torch.Tensor, folder: Path, camera_each: bool = False
         name = f"view_{index:02d}"
         Image.fromarray(views.masks[index].numpy().astype(np.uint8) * 255).save(folder / "masks" / f"{name}.png")
         frames.append({"file_path": f"images/{name}.png", "mask_path": f"masks/{name}.png",
-                       "transform_matrix": opengl_to_opencv(c2w[index].double()).tolist(), **(camera if camera_each else {})})
+                       "transform_matrix": opengl_from(c2w[index]).tolist(), **(camera if camera_each else {})})
     return {"frames": frames, **({} if camera_each else camera)}
 
 
-def object_points(scene, count: int = 200) -> np.ndarray:
-    """(count, 3) points in the turntable object's box, in the scene's world: where matched features would lie."""
+def opengl_from(c2w: torch.Tensor) -> torch.Tensor:
+    """(4, 4) OpenCV camera-to-world -> OpenGL's (y up, looking down -z), as transforms.json holds it."""
+    out = c2w.double().clone()
+    out[:3, 1:3] *= -1.0
+    return out
+
+
+def object_points(scene, count: int = 200, part: float = 1.0) -> np.ndarray:
+    """(count, 3) points in the turntable object's box (``part``: in that fraction of it from its lowest corner), in
+    the scene's world: where matched features would lie."""
     low, high = torch.tensor(OBJECT_BOUNDS[0], dtype=torch.float64), torch.tensor(OBJECT_BOUNDS[1], dtype=torch.float64)
+    high = low + part * (high - low)
     points = low + (high - low) * torch.rand(count, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     transform = scene.world_from_capture.double()
     return (points @ transform[:3, :3].T + transform[:3, 3]).numpy()
@@ -62,6 +70,26 @@ def test_the_true_poses_agree_with_their_masks(turntable, tmp_path, camera_each)
     assert agreement["median_coverage"] > 0.9, agreement
     assert agreement["views_below"] == []
     assert len(agreement["coverage"]) == len(views) and agreement["masks_read"] == "masks (up to 192x192)"
+
+
+def test_the_masks_are_read_small_and_the_hull_grows_past_points_on_part_of_the_object(turntable, tmp_path, monkeypatch):
+    import nerf_lightning.capture.silhouettes as silhouettes
+
+    views = turntable.train
+    transforms = as_written(views, views.c2w, tmp_path)
+    (tmp_path / "masks_2").mkdir()
+    for index in range(len(views)):  # the half-size copies nerf-process-data writes: a pixel is the object where half its block is
+        half = views.masks[index].numpy().reshape(96, 2, 96, 2).mean(axis=(1, 3)) >= 0.5
+        Image.fromarray(half.astype(np.uint8) * 255).save(tmp_path / "masks_2" / f"view_{index:02d}.png")
+    monkeypatch.setattr(silhouettes, "MASK_SIDE", 90)
+    agreement = silhouette_agreement(transforms, object_points(turntable), tmp_path, [2])
+    assert agreement["masks_read"] == "masks_2 (up to 96x96)" and agreement["median_coverage"] > 0.9, agreement
+    monkeypatch.setattr(silhouettes, "MASK_SIDE", 60)  # no copy that small: the full masks cut to blocks of 3 as read
+    agreement = silhouette_agreement(transforms, object_points(turntable), tmp_path, [])
+    assert agreement["masks_read"] == "masks in blocks of 3 (up to 64x64)" and agreement["median_coverage"] > 0.9, agreement
+    # matched points on a corner of the object alone: the hull reaches its box's faces, and is carved again wider
+    agreement = silhouette_agreement(transforms, object_points(turntable, part=0.25), tmp_path, [])
+    assert agreement["median_coverage"] > 0.9, agreement
 
 
 def test_poses_strung_wrong_do_not_and_one_photo_posed_wrong_is_named(turntable, tmp_path):

@@ -51,6 +51,10 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
         return overrides + [f"data.path={tiny_data['image']}", "data.val_steps=[1,2]"]
     overrides += [*(["data.scene.max_views=4"] if "max_views" in cfg.data.scene else []), "data.val_every=2", "data.val_views=1",
                   "data.render_frames=2"]
+    if cfg.data.get("masks") in ("background", "exclude") and cfg.data._target_.endswith("ViewDataModule"):
+        # a masked object's splats need masks: the built-in turntable's scene, 12 photos of 32x32, a view a step
+        overrides = [o for o in overrides if not o.startswith("data.scene.max_views")]
+        return overrides + ["data/scene=turntable", "data.scene.n_photos=12", "data.scene.size=32", "data.scene.holdout_every=4"]
     if cfg.data.get("object_box"):  # an object's box needs its masks: the built-in turntable, 12 photos of 32x32
         overrides = [o for o in overrides if not o.startswith("data.scene.max_views")]
         return overrides + ["data=turntable", "data.scene.n_photos=12", "data.scene.size=32", "data.scene.holdout_every=4",

@@ -51,7 +51,7 @@ def block_mask(mask: np.ndarray, blocks: int) -> np.ndarray:
     return mask[:height * blocks, :width * blocks].reshape(height, blocks, width, blocks).mean(axis=(1, 3)) >= 0.5
 
 
-def object_box(points: np.ndarray, c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def carving_box(points: np.ndarray, c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(3,), (3,) float64: the box to carve the hull in: the sparse points' (P, 3) (those between their 2nd and 98th
     percentiles: strays left out), widened by :data:`BOX_MARGIN` of its longest side; the cameras' (c2w (N, 4, 4)) where
     the points are too few or all in one place."""
@@ -94,10 +94,10 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
     K = torch.tensor([[[frame["fl_x"] / factor, 0.0, frame["cx"] / factor], [0.0, frame["fl_y"] / factor, frame["cy"] / factor],
                        [0.0, 0.0, 1.0]] for frame in frames], dtype=torch.float64)
     c2w = opengl_to_opencv(torch.tensor([frame["transform_matrix"] for frame in frames], dtype=torch.float64))
-    low, high = object_box(points, c2w)
+    low, high = carving_box(points, c2w)
     for attempt in range(GROW_TRIES):  # a hull cut off by its grid's box (points on a part of the object alone): a wider box
         hull = visual_hull(c2w, K, masks, low, high, RESOLUTION)
-        touches = hull[0].any() or hull[-1].any() or hull[:, 0].any() or hull[:, -1].any() or hull[:, :, 0].any() or hull[:, :, -1].any()
+        touches = hull[[0, -1]].any() or hull[:, [0, -1]].any() or hull[:, :, [0, -1]].any()
         if not touches or attempt == GROW_TRIES - 1:
             break
         centre, half = (low + high) / 2, (high - low) / 2

@@ -24,6 +24,7 @@ import torch
 from nerf_lightning.data.formats.shared import apply_similarity
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.scene import Scene, Views
+from nerf_lightning.geometry.rays import indexed_pixel_rays, ray_aabb_intersect
 
 # how many views a point must lie in front of before their masks count
 MIN_SEEING = 3
@@ -114,7 +115,10 @@ def silhouette_coverage(c2w: torch.Tensor, K: torch.Tensor, masks: torch.Tensor,
     count, height, width = masks.shape
     resolution = hull.shape[0]
     low, high = low.double(), high.double()
+    box = torch.cat([low, high])
     cell = (high - low) / (resolution - 1)
+    steps = int(torch.ceil(2.0 * (high - low).norm() / cell.min())) + 1  # half the smallest cell a step, corner to corner
+    fractions = torch.linspace(0.0, 1.0, steps, dtype=torch.float64)
     c2w, K = c2w.double(), K.double()
     coverage = torch.zeros(count, dtype=torch.float64)
     for view in range(count):
@@ -122,19 +126,12 @@ def silhouette_coverage(c2w: torch.Tensor, K: torch.Tensor, masks: torch.Tensor,
         if len(pixels) == 0:
             continue
         drawn = pixels[torch.randint(len(pixels), (rays,), generator=generator)]
-        uv = torch.stack([(drawn % width).double() + 0.5, (drawn // width).double() + 0.5, torch.ones(rays, dtype=torch.float64)], -1)
-        directions = (uv @ torch.linalg.inv(K[view]).T) @ c2w[view, :3, :3].T
-        directions = directions / directions.norm(dim=-1, keepdim=True)
-        origin = c2w[view, :3, 3]
-        # the ray's stretch inside the grid's box (slabs), walked in steps of half the smallest cell
-        inverse = 1.0 / torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
-        t0, t1 = (low - origin) * inverse, (high - origin) * inverse
-        enter = torch.minimum(t0, t1).amax(-1).clamp(min=0.0)
-        leave = torch.maximum(t0, t1).amin(-1)
-        steps = int(torch.ceil(2.0 * (high - low).norm() / cell.min())) + 1
-        fractions = torch.linspace(0.0, 1.0, steps, dtype=torch.float64)
+        origins, directions = indexed_pixel_rays(K, c2w, height, width, view * height * width + drawn)
+        # the ray's stretch inside the grid's box, walked in steps
+        enter, leave = ray_aabb_intersect(origins, directions, box)
+        enter = enter.clamp(min=0.0)
         t = enter[:, None] + (leave - enter).clamp(min=0.0)[:, None] * fractions  # (rays, steps)
-        points = origin + t[..., None] * directions[:, None]
+        points = origins[:, None] + t[..., None] * directions[:, None]
         index = torch.round((points - low) / cell).long()
         valid = ((index >= 0) & (index < resolution)).all(-1) & (leave > enter)[:, None]
         index = index.clamp(0, resolution - 1)

@@ -388,11 +388,15 @@ class ProjectAndShade(torch.autograd.Function):
                                           for grad, size in parts], axis=1)
         grad_colours = np.zeros((m, 3), dtype) if grad_colours is None else \
             grad_colours.detach().contiguous().numpy().astype(dtype, copy=False)
-        grads = [np.zeros(array.shape, dtype) for array in arrays]  # computed in float64, rounded once as written
+        # computed in float64, rounded once as written. Allocated by torch, not numpy: numpy asks the kernel for huge
+        # pages for large arrays, and where the kernel compacts memory to find them (transparent huge pages with
+        # defrag=madvise) the loop's first writes into these Gaussian-sized arrays stall on it, every step
+        torch_dtype = torch.from_numpy(np.empty(0, dtype)).dtype
+        grads = [torch.zeros(array.shape, dtype=torch_dtype) for array in arrays]
         project_and_shade_backward_loop(*arrays, degree, camera, height, width, antialiased, ids, grad_footprints,
-                                        grad_colours, *grads)
+                                        grad_colours, *(grad.numpy() for grad in grads))
         grads[5] = grads[5][:, : shN_shape[1]]  # shN without higher bands: its own empty shape back
-        return (*(torch.from_numpy(grad) for grad in grads), None, None, None, None, None)
+        return (*grads, None, None, None, None, None)
 
 
 def camera_array(K: torch.Tensor, c2w: torch.Tensor, dtype: torch.dtype) -> np.ndarray:

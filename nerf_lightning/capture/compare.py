@@ -1,6 +1,6 @@
 """Recovered cameras against published ones of the same photos (a ``transforms.json`` against a ``transforms.json`` or
-an LLFF ``poses_bounds.npy``), after the similarity that best aligns their centres
-(:func:`nerf_lightning.geometry.alignment.camera_pose_errors`)."""
+an LLFF ``poses_bounds.npy``), after the similarity that best aligns their centres, fitted again without the
+cameras far off it (:func:`nerf_lightning.geometry.alignment.camera_pose_errors`)."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ def llff_cameras_by_image(path: Path) -> dict[str, torch.Tensor]:
 def compare_with_reference(recovered: str | Path, reference: str | Path) -> dict[str, Any]:
     """Cameras of ``recovered`` against those of ``reference`` for the images both have (matched by file name).
 
-    Returns the number compared, the medians and maxima of the position error (in the reference's units and as a
+    Returns the number compared, the number the similarity was fitted to (``aligned_on``: those not far off it), the medians and maxima of the position error (in the reference's units and as a
     percentage of the reference cameras' spread, the root mean square distance of their centres from their mean) and
     of the rotation error in degrees, the spread, and the per-image errors.
     """
@@ -57,6 +57,7 @@ def compare_with_reference(recovered: str | Path, reference: str | Path) -> dict
     position, rotation, spread = errors["position_error"], errors["rotation_error"], float(errors["spread"])
     return {
         "compared": len(common),
+        "aligned_on": int(errors["aligned_on"].sum()),
         "spread": spread,
         "median_position_error": float(position.median()),
         "median_position_error_percent_of_spread": 100.0 * float(position.median()) / spread,

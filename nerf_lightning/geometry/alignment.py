@@ -1,5 +1,6 @@
 """Comparing two sets of cameras of one capture: the similarity that best maps one set's centres onto the other's
-(Umeyama's least squares), and the position and rotation errors left after it.
+(Umeyama's least squares, fitted again without the cameras far off it), and the position and rotation errors left
+after it.
 
 Structure from motion recovers cameras up to a similarity (its own origin, orientation and scale), so poses from
 two runs (recovered by ``nerf-process-data`` and published with a data set, say) are compared after aligning them.
@@ -8,6 +9,12 @@ two runs (recovered by ``nerf-process-data`` and published with a data set, say)
 from __future__ import annotations
 
 import torch
+
+# a camera whose centre lies over this many times the median camera's distance from its reference after a fit is left
+# out of the next fit: one camera posed wrong (hundreds of percent of the spread) would otherwise pull the least
+# squares fit, and with it every other camera's error (as COLMAP's model_aligner fits by RANSAC, not by all)
+OUTLIER_FACTOR = 3.0
+REFITS = 5
 
 
 def umeyama_similarity(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -60,8 +67,13 @@ def camera_pose_errors(c2w: torch.Tensor, c2w_reference: torch.Tensor) -> dict[s
     Args:
         c2w: (N, 4, 4) camera-to-world matrices, N >= 3, in any similarity frame.
         c2w_reference: (N, 4, 4) the reference's camera-to-world matrices of the same N photos.
+    The similarity is fitted to all centres, then again to those within :data:`OUTLIER_FACTOR` times the median
+    distance of the fit (at most :data:`REFITS` times, never on fewer than half of them): the errors of cameras left
+    out are still reported, after the fit to the others.
+
     Returns:
-        ``transform`` (4, 4): reference-from-c2w similarity (:func:`umeyama_similarity` of the centres);
+        ``transform`` (4, 4): reference-from-c2w similarity (:func:`umeyama_similarity` of the centres it was fitted to);
+        ``aligned_on`` (N,) bool: the cameras it was fitted to;
         ``position_error`` (N,): distance of each aligned centre from its reference, in the reference's units;
         ``rotation_error`` (N,): degrees between each aligned camera rotation and the reference's;
         ``spread`` (): the root mean square distance of the reference centres from their mean, the scale that
@@ -70,15 +82,25 @@ def camera_pose_errors(c2w: torch.Tensor, c2w_reference: torch.Tensor) -> dict[s
     if c2w.shape != c2w_reference.shape or c2w.ndim != 3 or c2w.shape[-2:] != (4, 4):
         raise ValueError(f"camera_pose_errors: expected two (N, 4, 4) camera sets of the same N, got {tuple(c2w.shape)} and {tuple(c2w_reference.shape)}")
     c2w, c2w_reference = c2w.double(), c2w_reference.double()
-    transform = umeyama_similarity(c2w[:, :3, 3], c2w_reference[:, :3, 3])
+    reference_centres = c2w_reference[:, :3, 3]
+    spread = (reference_centres - reference_centres.mean(0)).pow(2).sum(-1).mean().sqrt()
+    aligned_on = torch.ones(len(c2w), dtype=torch.bool)
+    for fit in range(REFITS + 1):
+        transform = umeyama_similarity(c2w[aligned_on, :3, 3], reference_centres[aligned_on])
+        centres = c2w[:, :3, 3] @ transform[:3, :3].T + transform[:3, 3]
+        distance = (centres - reference_centres).norm(dim=-1)
+        # a floor, so that cameras all but exact are not cut for a few millionths of the spread
+        within = distance <= max(OUTLIER_FACTOR * float(distance[aligned_on].median()), 1e-6 * float(spread))
+        if fit == REFITS or torch.equal(within, aligned_on) or 2 * int(within.sum()) < len(c2w) or int(within.sum()) < 3:
+            break
+        aligned_on = within
     scaled_rotation = transform[:3, :3]
     scale = torch.linalg.det(scaled_rotation) ** (1.0 / 3.0)
-    centres = c2w[:, :3, 3] @ scaled_rotation.T + transform[:3, 3]
     rotations = (scaled_rotation / scale) @ c2w[:, :3, :3]
-    reference_centres = c2w_reference[:, :3, 3]
     return {
         "transform": transform,
+        "aligned_on": aligned_on,
         "position_error": (centres - reference_centres).norm(dim=-1),
         "rotation_error": rotation_angle(rotations, c2w_reference[:, :3, :3]),
-        "spread": (reference_centres - reference_centres.mean(0)).pow(2).sum(-1).mean().sqrt(),
+        "spread": spread,
     }

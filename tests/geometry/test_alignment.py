@@ -52,3 +52,27 @@ def test_camera_errors_after_alignment_are_those_put_in():
     assert errors["rotation_error"][torch.arange(count) != 3].max() < 1e-5
     spread = (reference[:, :3, 3] - reference[:, :3, 3].mean(0)).norm(dim=-1).pow(2).mean().sqrt()
     assert float(errors["spread"]) == pytest.approx(float(spread))
+
+
+def test_one_camera_far_off_does_not_pull_the_others():
+    generator = torch.Generator().manual_seed(2)
+    count = 30
+    reference = torch.eye(4, dtype=torch.float64).repeat(count, 1, 1)
+    reference[:, :3, :3] = torch.stack([random_rotation(generator) for _ in range(count)])
+    reference[:, :3, 3] = torch.randn(count, 3, generator=generator, dtype=torch.float64)
+    recovered = reference.clone()
+    # every centre off by about 1 % of the spread, as structure from motion leaves them, and one camera 3 spreads away
+    recovered[:, :3, 3] += 0.01 * torch.randn(count, 3, generator=generator, dtype=torch.float64)
+    recovered[7, :3, 3] += torch.tensor([3.0, -2.0, 1.5], dtype=torch.float64)
+    errors = camera_pose_errors(recovered, reference)
+    others = torch.arange(count) != 7
+    assert errors["aligned_on"][others].all() and not errors["aligned_on"][7]
+    assert float(errors["position_error"][others].max()) < 0.05  # the noise, not the far camera's pull
+    assert float(errors["position_error"][7]) > 3.0
+    assert float(errors["rotation_error"][others].max()) < 0.5  # degrees: the fit to noisy centres, not the pull
+    # fitted to all of them, the far camera would have turned and scaled the others off by many times the noise
+    from nerf_lightning.geometry.alignment import umeyama_similarity
+
+    plain = umeyama_similarity(recovered[:, :3, 3], reference[:, :3, 3])
+    pulled = (recovered[:, :3, 3] @ plain[:3, :3].T + plain[:3, 3] - reference[:, :3, 3]).norm(dim=-1)
+    assert float(pulled[others].median()) > 3 * float(errors["position_error"][others].median())

@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import torch
 
-# a camera whose centre lies over this many times the median camera's distance from its reference after a fit is left
-# out of the next fit: one camera posed wrong (hundreds of percent of the spread) would otherwise pull the least
-# squares fit, and with it every other camera's error (as COLMAP's model_aligner fits by RANSAC, not by all)
+# a camera whose centre lies over this many times the median camera's distance from its reference after a fit, and
+# over FAR_OFF of the cameras' spread, is left out of the next fit: one camera posed wrong (hundreds of percent of the
+# spread) would otherwise pull the least squares fit, and with it every other camera's error (as COLMAP's
+# model_aligner fits by RANSAC, not by all). FAR_OFF keeps a good model's ordinary worst cameras in the fit
 OUTLIER_FACTOR = 3.0
+FAR_OFF = 0.05
 REFITS = 5
 
 
@@ -67,9 +69,9 @@ def camera_pose_errors(c2w: torch.Tensor, c2w_reference: torch.Tensor) -> dict[s
     Args:
         c2w: (N, 4, 4) camera-to-world matrices, N >= 3, in any similarity frame.
         c2w_reference: (N, 4, 4) the reference's camera-to-world matrices of the same N photos.
-    The similarity is fitted to all centres, then again to those within :data:`OUTLIER_FACTOR` times the median
-    distance of the fit (at most :data:`REFITS` times, never on fewer than half of them): the errors of cameras left
-    out are still reported, after the fit to the others.
+    The similarity is fitted to all centres, then again without those over :data:`OUTLIER_FACTOR` times the median
+    distance of the fit and over :data:`FAR_OFF` of the spread (at most :data:`REFITS` times, never on fewer than half
+    of them): the errors of cameras left out are still reported, after the fit to the others.
 
     Returns:
         ``transform`` (4, 4): reference-from-c2w similarity (:func:`umeyama_similarity` of the centres it was fitted to);
@@ -85,15 +87,18 @@ def camera_pose_errors(c2w: torch.Tensor, c2w_reference: torch.Tensor) -> dict[s
     reference_centres = c2w_reference[:, :3, 3]
     spread = (reference_centres - reference_centres.mean(0)).pow(2).sum(-1).mean().sqrt()
     aligned_on = torch.ones(len(c2w), dtype=torch.bool)
+    transform = umeyama_similarity(c2w[:, :3, 3], reference_centres)
     for fit in range(REFITS + 1):
-        transform = umeyama_similarity(c2w[aligned_on, :3, 3], reference_centres[aligned_on])
         centres = c2w[:, :3, 3] @ transform[:3, :3].T + transform[:3, 3]
         distance = (centres - reference_centres).norm(dim=-1)
-        # a floor, so that cameras all but exact are not cut for a few millionths of the spread
-        within = distance <= max(OUTLIER_FACTOR * float(distance[aligned_on].median()), 1e-6 * float(spread))
+        within = distance <= max(OUTLIER_FACTOR * float(distance[aligned_on].median()), FAR_OFF * float(spread))
         if fit == REFITS or torch.equal(within, aligned_on) or 2 * int(within.sum()) < len(c2w) or int(within.sum()) < 3:
             break
-        aligned_on = within
+        try:
+            refitted = umeyama_similarity(c2w[within, :3, 3], reference_centres[within])
+        except ValueError:  # the kept centres all coincide: the fit before stands
+            break
+        transform, aligned_on = refitted, within
     scaled_rotation = transform[:3, :3]
     scale = torch.linalg.det(scaled_rotation) ** (1.0 / 3.0)
     rotations = (scaled_rotation / scale) @ c2w[:, :3, :3]

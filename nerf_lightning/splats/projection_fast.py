@@ -367,8 +367,10 @@ class ProjectAndShade(torch.autograd.Function):
         if arrays[5].shape[1] == 0:  # numba needs an array it may index (never read at degree 0)
             arrays[5] = np.zeros((len(arrays[0]), 1, 3), arrays[0].dtype)
         n = len(arrays[0])
-        footprints = np.empty((n, 9), arrays[0].dtype)
-        colours = np.empty((n, 3), arrays[0].dtype)
+        # from torch, not numpy: see the backward's gradients
+        torch_dtype = torch.from_numpy(np.empty(0, arrays[0].dtype)).dtype
+        footprints = torch.empty((n, 9), dtype=torch_dtype).numpy()
+        colours = torch.empty((n, 3), dtype=torch_dtype).numpy()
         seen = np.empty(n, np.bool_)
         project_and_shade_loop(*arrays, degree, camera, height, width, antialiased, footprints, colours, seen)
         outputs = keep_seen(seen, footprints, colours)

@@ -61,7 +61,7 @@ def test_one_camera_far_off_does_not_pull_the_others():
     reference[:, :3, :3] = torch.stack([random_rotation(generator) for _ in range(count)])
     reference[:, :3, 3] = torch.randn(count, 3, generator=generator, dtype=torch.float64)
     recovered = reference.clone()
-    # every centre off by about 1 % of the spread, as structure from motion leaves them, and one camera 3 spreads away
+    # every centre off by about 1 % of the spread, as structure from motion leaves them, and one camera 2 spreads away
     recovered[:, :3, 3] += 0.01 * torch.randn(count, 3, generator=generator, dtype=torch.float64)
     recovered[7, :3, 3] += torch.tensor([3.0, -2.0, 1.5], dtype=torch.float64)
     errors = camera_pose_errors(recovered, reference)

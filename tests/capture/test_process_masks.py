@@ -392,6 +392,44 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
     assert "too few registered at first (3): posed again with stronger settings" in format_report(report)
 
 
+@needs_pycolmap
+@pytest.mark.parametrize("agreements, kept", [((0.95,), None), ((0.6, 0.95), "stronger"), ((0.6, 0.5), "first")])
+def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_kept(tmp_path, monkeypatch, agreements, kept):
+    # every photo registers each time, but the masks' agreement with the first model's poses says it is wrong in part
+    # (as on moldGoldCape's darkened photos): under ESCALATE_AGREEMENT it is posed again, and the model whose masks
+    # agree more is kept
+    import nerf_lightning.capture.process as process
+    from nerf_lightning.capture import format_report, process_capture
+
+    photos = object_photos(tmp_path / "photos", count=6)
+    masks = save_masks(tmp_path / "masks", photos)
+    calls, left = [], list(agreements)
+
+    def reconstruct(images, names, colmap_dir, *, masks=None, **options):
+        calls.append(options)
+        colmap_dir.mkdir(parents=True, exist_ok=True)
+        mapping = {"mapper": "global", "mappers": {"global": {"registered": len(names), "verified_matches_explained": 1.0}},
+                   "matches": {}, "focal_priors": []}
+        return synthetic_model(list(names), SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
+
+    def silhouette_agreement(transforms, points, staging, downscales, seed=0):
+        return {"median_coverage": left.pop(0), "views_below": [], "coverage": {}, "masks_read": "masks"}
+
+    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "silhouette_agreement", silhouette_agreement)
+    report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.4, progress=False)
+    assert left == [] and report["registered"] == 6
+    if kept is None:
+        assert len(calls) == 1 and "escalated" not in report and report["silhouettes"]["median_coverage"] == 0.95
+        return
+    escalated = report["escalated"]
+    assert len(calls) == 2 and calls[1]["strong"] and escalated["why"] == "masks" and escalated["kept"] == kept
+    assert (escalated["mask_agreement_before"], escalated["mask_agreement_after"]) == agreements
+    assert report["silhouettes"]["median_coverage"] == (agreements[1] if kept == "stronger" else agreements[0])
+    assert "the masks agreed 60% at first: posed again with stronger settings" in format_report(report)
+    assert ("that model is kept" if kept == "stronger" else "the first model is kept") in format_report(report)
+
+
 def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_the_photos():
     from nerf_lightning.capture.process import escalated_settings
 

@@ -216,6 +216,7 @@ def main() -> None:
         "settings": {key: report[key] for key in ("matcher", "mapper", "camera_model", "single_camera", "max_size")},
         # with masks: the masks' agreement with the poses, which nerf-process-data stops on under min_mask_agreement
         "silhouettes": {key: value for key, value in report["silhouettes"].items() if key != "coverage"} if "silhouettes" in report else None,
+        "escalated": report.get("escalated"),
         "total_s": total, "seconds": report["seconds"],
         "mappers_over_seeds": seeds, "per_image": errors["per_image"],
     }

@@ -68,6 +68,14 @@ def masks_label(result: dict[str, Any]) -> str:
     return {"erode": f"eroded {size} px", "dilate": f"dilated {size} px"}.get(kind, "yes")
 
 
+def capture_label(result: dict[str, Any]) -> str:
+    """A posing row's capture: its name, the photos' folder where not ``images``, and how they were changed
+    (``--photo-change dark:F``)."""
+    label = result["capture"] + ("" if result.get("images", "images") == "images" else f" {result['images']}/")
+    kind, _, factor = (result.get("photo_change") or "").partition(":")
+    return label + (f", photos darkened x {factor}" if kind == "dark" else "")
+
+
 def posing_table(results: list[dict[str, Any]]) -> list[str]:
     """``scripts/bench_process_data.py``'s JSONs as one table: photos registered and their cameras' errors against
     reference poses after a similarity alignment, the masks' agreement with the poses (the median photo's, which
@@ -81,7 +89,7 @@ def posing_table(results: list[dict[str, Any]]) -> list[str]:
     for r in results:
         agree = (r.get("silhouettes") or {}).get("median_coverage")
         lines.append(
-            f"| {r['capture']}{'' if r.get('images', 'images') == 'images' else ' ' + r['images'] + '/'} | {masks_label(r)} | {r['images_given']} | {_number(r.get('registered'), 0)} "
+            f"| {capture_label(r)} | {masks_label(r)} | {r['images_given']} | {_number(r.get('registered'), 0)} "
             f"| {_number(r.get('median_position_error_percent_of_spread'), 2)} / {_number(r.get('max_position_error_percent_of_spread'), 2)} "
             f"| {_number(r.get('median_rotation_error_deg'), 2)} / {_number(r.get('max_rotation_error_deg'), 2)} "
             f"| {'–' if agree is None else f'{100.0 * agree:.0f} %'} | {r['total_s']:.0f} | {r['machine']['name']} | {r['date'][:10]} |"

@@ -56,3 +56,6 @@ def test_the_posing_table_says_how_well_the_masks_agree_where_a_row_measured_it(
     assert lines[0].count("|") == lines[1].count("|") == lines[2].count("|") == lines[3].count("|")
     assert "| 79.35 / 152.54 | 0 % | 165 |" in lines[2]
     assert "| 79.35 / 152.54 | – | 165 |" in lines[3]  # a row from before the check
+    assert lines[2].startswith("| moldGoldCape images_4/ | yes | 20 |")
+    darker = posing_table([{**row, "photo_change": "dark:0.25"}])[2]
+    assert darker.startswith("| moldGoldCape images_4/, photos darkened x 0.25 | yes | 20 |"), darker

@@ -200,7 +200,9 @@ def write_report(results_dir: Path, report: Path, readme: Path | None = None) ->
     if posing:
         lines += ["## Posing captures (nerf-process-data)", "",
                   "Photos COLMAP registered and how far their cameras lie from the capture's reference poses after the "
-                  "similarity that best aligns them (a turntable's references: the cameras relative to the object; "
+                  "similarity that best aligns them, fitted again without the cameras far off it (the rows whose JSON "
+                  "records how many it kept, `aligned_on`; the older rows fitted it to all; a turntable's references: the "
+                  "cameras relative to the object; "
                   "`scripts/bench_process_data.py`, one JSON a row in "
                   f"`{os.path.relpath(results_dir / 'posing', report.parent) if results_dir.is_absolute() else results_dir / 'posing'}/`).", "",
                   *posing_table(posing), "", "Reproduce:", ""]

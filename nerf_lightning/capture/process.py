@@ -293,8 +293,9 @@ def process_capture(
         max_features: SIFT features an image.
         downscales: factors of the smaller copies, ``images_<k>/``.
         min_registered: stop with an error when COLMAP poses fewer than this fraction of the images.
-        escalate: where fewer than :data:`ESCALATE_BELOW` of the images register, pose them again with stronger
-            (slower) settings (:func:`escalated_settings`), say so, and keep the model that registered more.
+        escalate: where fewer than :data:`ESCALATE_BELOW` of the images register, or (with masks) the median photo's
+            mask agrees with the poses less than :data:`ESCALATE_AGREEMENT`, pose them again with stronger (slower)
+            settings (:func:`escalated_settings`), say so, and keep the better model (:func:`model_score`).
         seed: COLMAP's random seed.
         masks: a folder with a mask for each photo, named as the photo (``IMG_1.jpg`` <- ``IMG_1.png``, or
             ``IMG_1.jpg.png``), of its size upright (EXIF orientation applied, as to the photos), any format Pillow

@@ -90,11 +90,13 @@ def agreement_of(agreement: dict[str, Any] | None) -> float | None:
     return None if agreement is None else agreement["median_coverage"]
 
 
-def model_score(posed: set[str], agreement: dict[str, Any] | None) -> float:
-    """Which of two models of a capture to keep: the one with more photos posed, each weighted, where the capture has
-    masks, by the masks' agreement with the poses (the median photo's), so that fewer photos posed right beat more
-    posed partly wrong."""
-    return len(posed) * (agreement["median_coverage"] if agreement is not None else 1.0)
+def model_score(posed: set[str], agreement: dict[str, Any] | None, masks: bool) -> tuple[float, int]:
+    """Which of two models of a capture to keep, the higher: the one with more photos posed, each weighted, where the
+    capture has masks, by the masks' agreement with the poses (the median photo's), so that fewer photos posed right
+    beat more posed partly wrong; on a tie, more photos posed. Under 3 posed, a model nothing can use: -1."""
+    if len(posed) < 3:
+        return (-1.0, len(posed))
+    return (len(posed) * (agreement["median_coverage"] if masks and agreement is not None else 1.0), len(posed))
 
 
 ADVICE = ("photos with more overlap (each part of the scene in 3 or more of them, taken a step apart, not turning on "
@@ -376,11 +378,14 @@ def process_capture(
             max_size=int(max_size), max_features=int(max_features), seed=seed,
             masks=staging / "colmap" / "masks" if fractions else None, progress=progress, verbose=verbose)
         posed = registered_names(model) if model is not None else set()
-        check_started = time.perf_counter()
-        agreement = model_agreement(model, posed, staging, downscales, seed) if fractions else None
-        seconds["silhouettes"] = time.perf_counter() - check_started
+        agreement = None
+        if fractions:
+            check_started = time.perf_counter()
+            agreement = model_agreement(model, posed, staging, downscales, seed)
+            seconds["silhouettes"] = time.perf_counter() - check_started
         too_few = len(posed) < ESCALATE_BELOW * len(names)
-        disagree = agreement is not None and agreement["median_coverage"] < ESCALATE_AGREEMENT
+        # a model that would stop on min_mask_agreement is tried again too, where that is set above ESCALATE_AGREEMENT
+        disagree = agreement is not None and agreement["median_coverage"] < max(ESCALATE_AGREEMENT, min_mask_agreement)
         if escalate and (too_few or disagree):
             stronger = escalated_settings(int(max_size), int(max_features), sizes)
             why = (f"COLMAP registered {len(posed)} of the {len(names)} images" if too_few else
@@ -392,9 +397,11 @@ def process_capture(
                 single_camera=single_camera, seed=seed, masks=staging / "colmap" / "masks" if fractions else None, progress=progress,
                 verbose=verbose, **stronger)
             again_posed = registered_names(again) if again is not None else set()
-            check_started = time.perf_counter()
-            again_agreement = model_agreement(again, again_posed, staging, downscales, seed) if fractions else None
-            seconds["silhouettes"] += time.perf_counter() - check_started
+            again_agreement = None
+            if fractions:
+                check_started = time.perf_counter()
+                again_agreement = model_agreement(again, again_posed, staging, downscales, seed)
+                seconds["silhouettes"] += time.perf_counter() - check_started
             report["escalated"] = {"why": "registered" if too_few else "masks", "registered_before": len(posed),
                                    "registered_after": len(again_posed),
                                    "settings": {key: value for key, value in stronger.items() if key != "strong"},
@@ -403,7 +410,8 @@ def process_capture(
                 report["escalated"].update({"mask_agreement_before": agreement_of(agreement),
                                             "mask_agreement_after": agreement_of(again_agreement)})
             seconds["escalation"] = sum(again_seconds.values())
-            report["escalated"]["kept"] = "stronger" if model_score(again_posed, again_agreement) > model_score(posed, agreement) else "first"
+            better = model_score(again_posed, again_agreement, bool(fractions)) > model_score(posed, agreement, bool(fractions))
+            report["escalated"]["kept"] = "stronger" if better else "first"
             if report["escalated"]["kept"] == "stronger":
                 shutil.rmtree(staging / "colmap", ignore_errors=True)
                 (staging / "colmap_escalated").rename(staging / "colmap")

@@ -282,8 +282,10 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
     output = tmp_path / "out"
-    # the stand-in model's poses are not the photos': the masks' check against them is taken off (tests/capture/test_silhouettes.py)
-    report = process_capture(photos, output, masks=masks, mask_object="black", downscales=[2, 4], min_mask_agreement=0.0, progress=False)
+    # the stand-in model's poses are not the photos': the masks' check against them is taken off, and with it the
+    # second posing it would ask for (tests/capture/test_silhouettes.py, and the escalation tests below)
+    report = process_capture(photos, output, masks=masks, mask_object="black", downscales=[2, 4], min_mask_agreement=0.0,
+                             escalate=False, progress=False)
     assert handed["masks"] == [f"{name}.png" for name in names]  # as COLMAP reads them: photo_0.png.png
     assert sorted(report["silhouettes"]["coverage"]) == names
     meta = json.loads((output / "transforms.json").read_text())
@@ -380,6 +382,9 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
         return synthetic_model(posed, SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
+    # the stand-in models' poses are not the photos': their masks are taken to agree, so that the count alone decides
+    monkeypatch.setattr(process, "silhouette_agreement",
+                        lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
     report = process_capture(photos, tmp_path / "out", masks=masks, max_size=1600, max_features=8192, min_registered=0.4, min_mask_agreement=0.0,
                              escalate=escalate, progress=False)
     if not escalate:
@@ -390,6 +395,23 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
     assert report["registered"] == 6 and report["escalated"]["registered_before"] == 3 and report["escalated"]["registered_after"] == 6
     assert len(json.loads((tmp_path / "out" / "transforms.json").read_text())["frames"]) == 6
     assert "too few registered at first (3): posed again with stronger settings" in format_report(report)
+
+
+def test_the_model_kept_is_the_one_with_more_photos_posed_weighted_by_the_masks_agreement():
+    from nerf_lightning.capture.process import model_score
+
+    def agreeing(value):
+        return {"median_coverage": value}
+
+    photos = lambda count: {f"p{index}" for index in range(count)}
+    assert model_score(photos(59), agreeing(0.95), True) > model_score(photos(59), agreeing(0.79), True)
+    assert model_score(photos(55), agreeing(0.95), True) > model_score(photos(59), agreeing(0.6), True)
+    # a model of under 3 photos is never kept over one of 3 or more, however little its masks agree
+    assert model_score(photos(3), agreeing(0.0), True) > model_score(photos(2), None, True)
+    # equal weights (both wrong: 0 %): the one with more photos posed, which the masks' check then names
+    assert model_score(photos(15), agreeing(0.0), True) > model_score(photos(4), agreeing(0.0), True)
+    # without masks, the count alone, as before
+    assert model_score(photos(6), None, False) > model_score(photos(5), None, False)
 
 
 @needs_pycolmap

@@ -378,11 +378,17 @@ def process_capture(
             max_size=int(max_size), max_features=int(max_features), seed=seed,
             masks=staging / "colmap" / "masks" if fractions else None, progress=progress, verbose=verbose)
         posed = registered_names(model) if model is not None else set()
-        agreement = None
-        if fractions:
+
+        def agreement_with(candidate: Any, candidate_posed: set[str]) -> dict[str, Any] | None:
+            """With masks, their agreement with a model's poses (:func:`model_agreement`), its seconds counted."""
+            if not fractions:
+                return None
             check_started = time.perf_counter()
-            agreement = model_agreement(model, posed, staging, downscales, seed)
-            seconds["silhouettes"] = time.perf_counter() - check_started
+            found = model_agreement(candidate, candidate_posed, staging, downscales, seed)
+            seconds["silhouettes"] = seconds.get("silhouettes", 0.0) + time.perf_counter() - check_started
+            return found
+
+        agreement = agreement_with(model, posed)
         too_few = len(posed) < ESCALATE_BELOW * len(names)
         # a model that would stop on min_mask_agreement is tried again too, where that is set above ESCALATE_AGREEMENT
         disagree = agreement is not None and agreement["median_coverage"] < max(ESCALATE_AGREEMENT, min_mask_agreement)
@@ -397,11 +403,7 @@ def process_capture(
                 single_camera=single_camera, seed=seed, masks=staging / "colmap" / "masks" if fractions else None, progress=progress,
                 verbose=verbose, **stronger)
             again_posed = registered_names(again) if again is not None else set()
-            again_agreement = None
-            if fractions:
-                check_started = time.perf_counter()
-                again_agreement = model_agreement(again, again_posed, staging, downscales, seed)
-                seconds["silhouettes"] += time.perf_counter() - check_started
+            again_agreement = agreement_with(again, again_posed)
             report["escalated"] = {"why": "registered" if too_few else "masks", "registered_before": len(posed),
                                    "registered_after": len(again_posed),
                                    "settings": {key: value for key, value in stronger.items() if key != "strong"},

@@ -19,8 +19,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image
 
+from nerf_lightning.capture.images import read_mask
+from nerf_lightning.data.images import downscale_mask
 from nerf_lightning.data.object_box import silhouette_coverage, visual_hull
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 
@@ -40,15 +41,6 @@ def mask_copy(staging: Path, downscales: list[int], long_side: int) -> tuple[Pat
     ``long_side`` pixels long keep a long side of :data:`MASK_SIDE` or more."""
     usable = [k for k in sorted(downscales, reverse=True) if long_side / k >= MASK_SIDE and (staging / f"masks_{k}").is_dir()]
     return (staging / f"masks_{usable[0]}", usable[0]) if usable else (staging / "masks", 1)
-
-
-def block_mask(mask: np.ndarray, blocks: int) -> np.ndarray:
-    """(H, W) bool -> (H // blocks, W // blocks): a pixel is the object where at least half its block is (as the
-    ``masks_<k>/`` copies are made: blocks from the top left)."""
-    if blocks == 1:
-        return mask
-    height, width = mask.shape[0] // blocks, mask.shape[1] // blocks
-    return mask[:height * blocks, :width * blocks].reshape(height, blocks, width, blocks).mean(axis=(1, 3)) >= 0.5
 
 
 def carving_box(points: np.ndarray, c2w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -84,13 +76,13 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
     folder, factor = mask_copy(staging, list(downscales), largest)
     # no copy small enough (downscales=[]): each mask cut to blocks as it is read, so that 12 MP photos cost no more
     blocks = max(1, largest // factor // MASK_SIDE)
-    read = [block_mask(np.asarray(Image.open(folder / Path(frame["mask_path"]).name).convert("L")) > 127, blocks) for frame in frames]
+    read = [downscale_mask(torch.from_numpy(read_mask(folder / Path(frame["mask_path"]).name)), blocks) for frame in frames]
     factor *= blocks
     # photos of several sizes (a camera each): masks padded with background, which counts as outside the frame
     height, width = max(mask.shape[0] for mask in read), max(mask.shape[1] for mask in read)
     masks = torch.zeros(len(read), height, width, dtype=torch.bool)
     for index, mask in enumerate(read):
-        masks[index, :mask.shape[0], :mask.shape[1]] = torch.from_numpy(mask)
+        masks[index, :mask.shape[0], :mask.shape[1]] = mask
     K = torch.tensor([[[frame["fl_x"] / factor, 0.0, frame["cx"] / factor], [0.0, frame["fl_y"] / factor, frame["cy"] / factor],
                        [0.0, 0.0, 1.0]] for frame in frames], dtype=torch.float64)
     c2w = opengl_to_opencv(torch.tensor([frame["transform_matrix"] for frame in frames], dtype=torch.float64))

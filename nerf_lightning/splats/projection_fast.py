@@ -368,21 +368,20 @@ class ProjectAndShade(torch.autograd.Function):
             arrays[5] = np.zeros((len(arrays[0]), 1, 3), arrays[0].dtype)
         n = len(arrays[0])
         # from torch, not numpy: see the backward's gradients
-        torch_dtype = torch.from_numpy(np.empty(0, arrays[0].dtype)).dtype
-        footprints = torch.empty((n, 9), dtype=torch_dtype).numpy()
-        colours = torch.empty((n, 3), dtype=torch_dtype).numpy()
+        footprints = torch.empty((n, 9), dtype=means.dtype).numpy()
+        colours = torch.empty((n, 3), dtype=means.dtype).numpy()
         seen = np.empty(n, np.bool_)
         project_and_shade_loop(*arrays, degree, camera, height, width, antialiased, footprints, colours, seen)
         outputs = keep_seen(seen, footprints, colours)
         ids = outputs[-1]
-        ctx.saved = (arrays, degree, camera, height, width, antialiased, ids, shN.shape)
+        ctx.saved = (arrays, means.dtype, degree, camera, height, width, antialiased, ids, shN.shape)
         outputs = tuple(torch.from_numpy(value) for value in outputs)
         ctx.mark_non_differentiable(outputs[5], outputs[6])
         return outputs
 
     @staticmethod
     def backward(ctx, grad_means2d, grad_conics, grad_opacities, grad_depths, grad_colours, _extents, _ids):
-        arrays, degree, camera, height, width, antialiased, ids, shN_shape = ctx.saved
+        arrays, torch_dtype, degree, camera, height, width, antialiased, ids, shN_shape = ctx.saved
         m, dtype = len(ids), arrays[0].dtype
         parts = [(grad_means2d, 2), (grad_conics, 3), (grad_opacities, 0), (grad_depths, 0)]
         grad_footprints = np.concatenate([np.zeros((m, max(size, 1)), dtype) if grad is None else
@@ -393,7 +392,6 @@ class ProjectAndShade(torch.autograd.Function):
         # computed in float64, rounded once as written. Allocated by torch, not numpy: numpy asks the kernel for huge
         # pages for large arrays, and where the kernel compacts memory to find them (transparent huge pages with
         # defrag=madvise) the loop's first writes into these Gaussian-sized arrays stall on it, every step
-        torch_dtype = torch.from_numpy(np.empty(0, dtype)).dtype
         grads = [torch.zeros(array.shape, dtype=torch_dtype) for array in arrays]
         project_and_shade_backward_loop(*arrays, degree, camera, height, width, antialiased, ids, grad_footprints,
                                         grad_colours, *(grad.numpy() for grad in grads))

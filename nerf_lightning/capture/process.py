@@ -439,6 +439,7 @@ def process_capture(
             "focal_priors": mapping["focal_priors"],
             "verified_matches_explained": mapping["mappers"][mapping["mapper"]]["verified_matches_explained"],
             "camera_model": camera_model, "single_camera": bool(single_camera), "max_size": int(max_size),
+            "photo_side": max(max(size) for size in sizes.values()), "downscales": [int(factor) for factor in downscales],
             **model_statistics(model),
             "camera": {key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "w", "h") if key in transforms},
             "seconds": {stage: round(value, 2) for stage, value in seconds.items()},
@@ -455,6 +456,28 @@ def process_capture(
     return report
 
 
+# the object presets' views: the photos' smaller copies whose long side is at most this (a CPU's 10 minutes), and
+# patches of data.patch_size=384 where that side is over PATCH_OVER (conf/experiment/splat_object_cpu.yaml)
+TRAIN_SIDE = 1024
+PATCH_OVER = 500
+
+
+def next_commands(report: dict[str, Any]) -> list[str]:
+    """The commands that train on the capture, the report's last lines: a masked capture's object alone, as splats
+    and as a NeRF in its box, on the smaller copies of about a thousand pixels; else the capture with its background."""
+    output = report["output"]
+    if not report.get("masks"):
+        return [f"next: nerf-train experiment=fast_unbounded data.root={output}"]
+    side, factors = report.get("photo_side"), [1, *sorted(report.get("downscales", []))]
+    sized = patches = ""  # a report from before photo_side: the presets' own downscale
+    if side is not None:
+        factor = next((k for k in factors if side / k <= TRAIN_SIDE), factors[-1])
+        sized = f" data.scene.downscale={factor}"
+        patches = " data.patch_size=384" if side / factor > PATCH_OVER else ""
+    return [f"next: nerf-train experiment=splat_object_cpu data.root={output}{sized}{patches}",
+            f"  or a NeRF of the object in its box: nerf-train experiment=nerfacto_object_cpu data.root={output}{sized}"]
+
+
 def format_report(report: dict[str, Any]) -> str:
     """The report as the few lines ``nerf-process-data`` prints."""
     given, registered = report["images_given"], report["registered"]
@@ -468,7 +491,7 @@ def format_report(report: dict[str, Any]) -> str:
         f"{report['seconds']['total']:.0f} s: " + ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items() if stage != "total"),
         f"wrote {output}/transforms.json, images/ (and smaller copies), {'masks/ (and smaller copies), ' if masks else ''}"
         "sparse_pc.ply, colmap/, report.json",
-        f"next: nerf-train experiment=fast_unbounded data.root={output}" + (" data.masks=background" if masks else ""),
+        *next_commands(report),
     ]
     if "escalated" in report:
         escalated = report["escalated"]

@@ -300,7 +300,10 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
     assert json.loads((output / "report.json").read_text())["masks"]["count"] == 4
     printed = format_report(report)
     assert f"masks: 4 from {masks} (black = object), on average {100 * expected_fraction:.0f}% of a photo" in printed
-    assert printed.splitlines()[-1] == f"next: nerf-train experiment=fast_unbounded data.root={output} data.masks=background"
+    # the object alone next, on the photos themselves: 161 px a side needs no smaller copy and no patches
+    assert printed.splitlines()[-2:] == [
+        f"next: nerf-train experiment=splat_object_cpu data.root={output} data.scene.downscale=1",
+        f"  or a NeRF of the object in its box: nerf-train experiment=nerfacto_object_cpu data.root={output} data.scene.downscale=1"]
 
     # a later run without masks and with fewer downscales leaves no masks or smaller copies of the first
     report = process_capture(photos, output, downscales=[2], progress=False)
@@ -458,3 +461,23 @@ def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_th
     assert escalated_settings(1600, 8192, {"a": (4000, 4000)}) == {"max_size": 3200, "max_features": 16384, "strong": True}
     assert escalated_settings(1600, 8192, {"a": (2400, 1800)})["max_size"] == 2400
     assert escalated_settings(1600, 8192, {"a": (912, 912)})["max_size"] == 1600
+
+
+@pytest.mark.parametrize(("side", "downscales", "expected"), [
+    (1824, [2, 4, 8], " data.scene.downscale=2 data.patch_size=384"),  # moldGoldCape's photos: 912 px, on patches
+    (4000, [2, 4, 8], " data.scene.downscale=4 data.patch_size=384"),  # a 4000 px turntable: 1000 px
+    (800, [2, 4, 8], " data.scene.downscale=1 data.patch_size=384"),
+    (480, [2], " data.scene.downscale=1"),  # small enough to train on whole views
+    (9000, [2], " data.scene.downscale=2 data.patch_size=384"),  # no copy small enough: the smallest there is
+    (None, [2, 4], ""),  # a report written before the photos' side was kept: the presets' own downscale
+])
+def test_next_commands_size_a_masked_capture_for_the_object_presets(side, downscales, expected):
+    from nerf_lightning.capture.process import next_commands
+
+    report = {"output": "out", "masks": {"count": 3}, "downscales": downscales, **({"photo_side": side} if side else {})}
+    assert next_commands(report) == [
+        f"next: nerf-train experiment=splat_object_cpu data.root=out{expected}",
+        "  or a NeRF of the object in its box: nerf-train experiment=nerfacto_object_cpu data.root=out"
+        + expected.replace(" data.patch_size=384", "")]
+    assert next_commands({"output": "out", "photo_side": 1824, "downscales": [2]}) == [
+        "next: nerf-train experiment=fast_unbounded data.root=out"]

@@ -15,6 +15,7 @@ images left out and what to change.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import shutil
@@ -439,7 +440,7 @@ def process_capture(
             "focal_priors": mapping["focal_priors"],
             "verified_matches_explained": mapping["mappers"][mapping["mapper"]]["verified_matches_explained"],
             "camera_model": camera_model, "single_camera": bool(single_camera), "max_size": int(max_size),
-            "photo_side": max(max(size) for size in sizes.values()), "downscales": [int(factor) for factor in downscales],
+            "photo_side": max(max(size) for size in sizes.values()),
             **model_statistics(model),
             "camera": {key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "w", "h") if key in transforms},
             "seconds": {stage: round(value, 2) for stage, value in seconds.items()},
@@ -456,22 +457,23 @@ def process_capture(
     return report
 
 
-# the object presets' views: the photos' smaller copies whose long side is at most this (a CPU's 10 minutes), and
-# patches of data.patch_size=384 where that side is over PATCH_OVER (conf/experiment/splat_object_cpu.yaml)
+# the object presets' views: the photos area-averaged by the smallest whole factor that brings their long side to at
+# most this (a CPU's 10 minutes; transforms.json's loader averages the full-size photos and masks by any factor), and
+# patches of data.patch_size=384 where that side is still over PATCH_OVER (conf/experiment/splat_object_cpu.yaml)
 TRAIN_SIDE = 1024
 PATCH_OVER = 500
 
 
 def next_commands(report: dict[str, Any]) -> list[str]:
     """The commands that train on the capture, the report's last lines: a masked capture's object alone, as splats
-    and as a NeRF in its box, on the smaller copies of about a thousand pixels; else the capture with its background."""
+    and as a NeRF in its box, on views of about a thousand pixels a side; else the capture with its background."""
     output = report["output"]
     if not report.get("masks"):
         return [f"next: nerf-train experiment=fast_unbounded data.root={output}"]
-    side, factors = report.get("photo_side"), [1, *sorted(report.get("downscales", []))]
+    side = report.get("photo_side")
     sized = patches = ""  # a report from before photo_side: the presets' own downscale
     if side is not None:
-        factor = next((k for k in factors if side / k <= TRAIN_SIDE), factors[-1])
+        factor = max(1, math.ceil(side / TRAIN_SIDE))
         sized = f" data.scene.downscale={factor}"
         patches = " data.patch_size=384" if side / factor > PATCH_OVER else ""
     return [f"next: nerf-train experiment=splat_object_cpu data.root={output}{sized}{patches}",

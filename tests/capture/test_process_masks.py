@@ -298,6 +298,7 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
     assert report["masks"] == {"folder": str(masks), "mask_object": "black", "count": 4,
                                "mean_object_fraction": pytest.approx(expected_fraction, abs=1e-4)}
     assert json.loads((output / "report.json").read_text())["masks"]["count"] == 4
+    assert json.loads((output / "report.json").read_text())["photo_side"] == max(SIZE)
     printed = format_report(report)
     assert f"masks: 4 from {masks} (black = object), on average {100 * expected_fraction:.0f}% of a photo" in printed
     # the object alone next, on the photos themselves: 161 px a side needs no smaller copy and no patches
@@ -463,21 +464,20 @@ def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_th
     assert escalated_settings(1600, 8192, {"a": (912, 912)})["max_size"] == 1600
 
 
-@pytest.mark.parametrize(("side", "downscales", "expected"), [
-    (1824, [2, 4, 8], " data.scene.downscale=2 data.patch_size=384"),  # moldGoldCape's photos: 912 px, on patches
-    (4000, [2, 4, 8], " data.scene.downscale=4 data.patch_size=384"),  # a 4000 px turntable: 1000 px
-    (800, [2, 4, 8], " data.scene.downscale=1 data.patch_size=384"),
-    (480, [2], " data.scene.downscale=1"),  # small enough to train on whole views
-    (9000, [2], " data.scene.downscale=2 data.patch_size=384"),  # no copy small enough: the smallest there is
-    (None, [2, 4], ""),  # a report written before the photos' side was kept: the presets' own downscale
+@pytest.mark.parametrize(("side", "expected"), [
+    (1824, " data.scene.downscale=2 data.patch_size=384"),  # moldGoldCape's photos: 912 px, on patches
+    (4000, " data.scene.downscale=4 data.patch_size=384"),  # a 4000 px turntable: 1000 px
+    (9000, " data.scene.downscale=9 data.patch_size=384"),  # any whole factor: the loader averages the full photos
+    (800, " data.scene.downscale=1 data.patch_size=384"),
+    (480, " data.scene.downscale=1"),  # small enough to train on whole views
+    (None, ""),  # a report written before the photos' side was kept: the presets' own downscale
 ])
-def test_next_commands_size_a_masked_capture_for_the_object_presets(side, downscales, expected):
+def test_next_commands_size_a_masked_capture_for_the_object_presets(side, expected):
     from nerf_lightning.capture.process import next_commands
 
-    report = {"output": "out", "masks": {"count": 3}, "downscales": downscales, **({"photo_side": side} if side else {})}
+    report = {"output": "out", "masks": {"count": 3}, **({"photo_side": side} if side else {})}
     assert next_commands(report) == [
         f"next: nerf-train experiment=splat_object_cpu data.root=out{expected}",
         "  or a NeRF of the object in its box: nerf-train experiment=nerfacto_object_cpu data.root=out"
         + expected.replace(" data.patch_size=384", "")]
-    assert next_commands({"output": "out", "photo_side": 1824, "downscales": [2]}) == [
-        "next: nerf-train experiment=fast_unbounded data.root=out"]
+    assert next_commands({"output": "out", "photo_side": 1824}) == ["next: nerf-train experiment=fast_unbounded data.root=out"]

@@ -415,7 +415,7 @@ def process_capture(
             seconds["escalation"] = sum(again_seconds.values())
             better = model_score(again_posed, again_agreement, bool(fractions)) > model_score(posed, agreement, bool(fractions))
             report["escalated"]["kept"] = "stronger" if better else "first"
-            if report["escalated"]["kept"] == "stronger":
+            if better:
                 shutil.rmtree(staging / "colmap", ignore_errors=True)
                 (staging / "colmap_escalated").rename(staging / "colmap")
                 model, mapping, posed, agreement = again, again_mapping, again_posed, again_agreement
@@ -459,9 +459,10 @@ def process_capture(
 
 # the object presets' views: the photos area-averaged by the smallest whole factor that brings their long side to at
 # most this (a CPU's 10 minutes; transforms.json's loader averages the full-size photos and masks by any factor), and
-# patches of data.patch_size=384 where that side is still over PATCH_OVER (conf/experiment/splat_object_cpu.yaml)
+# patches of data.patch_size=PATCH_SIZE where that side is still over PATCH_OVER (conf/experiment/splat_object_cpu.yaml)
 TRAIN_SIDE = 1024
 PATCH_OVER = 500
+PATCH_SIZE = 384
 
 
 def next_commands(report: dict[str, Any]) -> list[str]:
@@ -475,7 +476,7 @@ def next_commands(report: dict[str, Any]) -> list[str]:
     if side is not None:
         factor = max(1, math.ceil(side / TRAIN_SIDE))
         sized = f" data.scene.downscale={factor}"
-        patches = " data.patch_size=384" if side / factor > PATCH_OVER else ""
+        patches = f" data.patch_size={PATCH_SIZE}" if side / factor > PATCH_OVER else ""
     return [f"next: nerf-train experiment=splat_object_cpu data.root={output}{sized}{patches}",
             f"  or a NeRF of the object in its box: nerf-train experiment=nerfacto_object_cpu data.root={output}{sized}"]
 

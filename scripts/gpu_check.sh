@@ -10,6 +10,8 @@
 #   splatfox: splat_360_gpu, fox, 2 minutes                          -> OUT/splatfox.json
 #   fast:     fast_blender_gpu, lego 800x800 (compiled)              -> OUT/fast.json
 #   cape:     nerfacto_360_gpu, moldGoldCape masked, downscale 4     -> OUT/cape.json
+#   capesplat: splat_object_gpu, moldGoldCape masked, downscale 4, 4 minutes -> OUT/capesplat.json (its Gaussians
+#             start from points triangulated inside the masks: carry pycolmap's wheel in .whl/, else they start at random)
 #   (syncs: issue 47's CountHostSyncs over plain fast_blender_gpu steps, when named)
 # then OUT/summary.txt. OUT gets (8 files at most come back; syncs adds a ninth, so name it with fewer rows): log.txt (everything), summary.txt, junit_device.xml (the test files that touch a
 # GPU, run first), junit.xml (the rest) and the rows' JSON.
@@ -127,8 +129,10 @@ run_tests() {
     if [ "$SMOKE" != 1 ] && $PY -c "import xdist" 2>/dev/null; then workers=(-n "${GPU_CHECK_TEST_WORKERS:-14}"); fi
     local end=$(($(date +%s) + TEST_SECONDS))
     # SIGINT at the limit: pytest stops where it is and still writes its junit XML
-    # (inductor's compile workers: a few a test worker, not one a core each)
+    # (inductor's compile workers: a few a test worker, not one a core each; one CPU thread a worker, since 14
+    # workers each taking every core's thread starve each other)
     if [ "$SMOKE" != 1 ]; then
+        export OMP_NUM_THREADS=${GPU_CHECK_TEST_THREADS:-1}
         TORCHINDUCTOR_COMPILE_THREADS=4 timeout -s INT -k 20 "$TEST_SECONDS" $PY -m pytest "${workers[@]}" -v -rfE --tb=short --durations=10 \
             --junitxml="$OUT/junit_device.xml" "${DEVICE_TESTS[@]}" >"$WORK/tests.log" 2>&1
         echo "pytest (device files) exit $?" >>"$WORK/tests.log"
@@ -202,6 +206,8 @@ wants splat && bench splat lego/splat_blender_gpu/2min/seed0 2 75 0.5
 wants splatfox && bench splatfox fox/splat_360_gpu/2min/seed0 2 75 0.5
 wants fast && bench fast lego/fast_blender_gpu/1min/seed0 1 60 0.5
 wants cape && bench cape moldGoldCape/nerfacto_360_gpu/1min/seed0 1 45 0.5
+# (its time besides training: the triangulation inside the masks too)
+wants capesplat && bench capesplat moldGoldCape/splat_object_gpu/4min/seed0 4 110 1
 
 # ---- summary --------------------------------------------------------------------------------------------------------
 [ -n "$SMI_PID" ] && kill "$SMI_PID" 2>/dev/null

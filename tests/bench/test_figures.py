@@ -39,10 +39,15 @@ def test_the_gpu_check_suite_loads_and_its_rows_compose():
 
     suite = load_suite(str(ROOT / "scripts" / "gpu_check.yaml"))
     assert [row.id for row in suite.rows] == ["lego/splat_blender_gpu/2min/seed0", "fox/splat_360_gpu/2min/seed0",
-                                              "lego/fast_blender_gpu/1min/seed0", "moldGoldCape/nerfacto_360_gpu/1min/seed0"]
+                                              "lego/fast_blender_gpu/1min/seed0", "moldGoldCape/nerfacto_360_gpu/1min/seed0",
+                                              "moldGoldCape/splat_object_gpu/4min/seed0"]
     assert all(row.device == "cuda" for row in suite.rows) and suite.rows[0].marks == (1.0, 2.0)
     for row in suite.rows:
         compose_config([f"experiment={row.preset}", f"data.root=/nowhere/{row.data}", *row.overrides])
+    # the object's GPU preset: its CPU parent's masks and growth, on whole views
+    gpu = compose_config(["experiment=splat_object_gpu", "data.root=/nowhere"])
+    assert gpu.data.masks == "background" and gpu.data.patch_size is None and gpu.model.strategy.grow_grad2d == 1.0e-4
+    assert gpu.model.strategy.refine_stop < gpu.trainer.max_steps
 
 
 def test_the_posing_table_says_how_well_the_masks_agree_where_a_row_measured_it():

@@ -11,7 +11,8 @@
 #   fast:     fast_blender_gpu, lego 800x800 (compiled)              -> OUT/fast.json
 #   cape:     nerfacto_360_gpu, moldGoldCape masked, downscale 4     -> OUT/cape.json
 #   capesplat: splat_object_gpu, moldGoldCape masked, downscale 4, 4 minutes -> OUT/capesplat.json (its Gaussians
-#             start from points triangulated inside the masks: carry pycolmap's wheel in .whl/, else they start at random)
+#             start from points triangulated inside the masks: carry pycolmap's wheel in .whl/, else they start at random;
+#             its 38 MB fit the lease's 64 MiB beside `gpu_check_tools.py data ... --scenes moldGoldCape` alone)
 #   (syncs: issue 47's CountHostSyncs over plain fast_blender_gpu steps, when named)
 # then OUT/summary.txt. OUT gets (8 files at most come back; syncs adds a ninth, so name it with fewer rows): log.txt (everything), summary.txt, junit_device.xml (the test files that touch a
 # GPU, run first), junit.xml (the rest) and the rows' JSON.

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from nerf_lightning.models.contract import HasDensity, HasGaussians
+from nerf_lightning.models.contract import HasDensity, HasGaussians, implements
 from nerf_lightning.outputs.mesh import FORMATS as MESH_FORMATS
 from nerf_lightning.outputs.mesh import mesh_model, write_mesh
 
@@ -73,7 +73,7 @@ EXPORT_FORMATS["ply"] = (ExportFormat(HasGaussians, "Gaussians (a splat PLY)", _
 
 def formats_of(model: Any) -> list[str]:
     """The formats ``model`` can be exported in."""
-    return [name for name, entries in EXPORT_FORMATS.items() if any(isinstance(model, entry.capability) for entry in entries)]
+    return [name for name, entries in EXPORT_FORMATS.items() if any(implements(model, entry.capability) for entry in entries)]
 
 
 def export_model(model: Any, file_format: str, output_dir: str | Path, options: Mapping[str, Any]) -> Path:
@@ -82,7 +82,7 @@ def export_model(model: Any, file_format: str, output_dir: str | Path, options: 
     entries = EXPORT_FORMATS.get(str(file_format))
     if entries is None:
         raise ValueError(f"format must be one of {', '.join(EXPORT_FORMATS)}, got '{file_format}'")
-    entry = next((entry for entry in entries if isinstance(model, entry.capability)), None)
+    entry = next((entry for entry in entries if implements(model, entry.capability)), None)
     if entry is None:
         have = formats_of(model)
         offer = f"it exports {', '.join(have)}" if have else "it has nothing nerf-export writes"

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 from nerf_lightning import __version__
 from nerf_lightning.config import run_dir_of  # noqa: F401 (its home was here; imported from here by earlier code)
-from nerf_lightning.devices import resolve_device
+from nerf_lightning.devices import enable_tf32, resolve_device
 from nerf_lightning.io import write_atomic
 
 log = logging.getLogger(__name__)
@@ -150,6 +150,9 @@ def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust:
     """
     path = Path(ckpt_path).expanduser()
     target = resolve_device(device)
+    # the matrix products at the precision training validated with (TF32 on CUDA), so that nerf-eval gives the
+    # numbers the run logged: in full float32 a GPU's eval of a NeRF differed from its validation by 0.01 to 0.02 dB
+    enable_tf32()
     checkpoint = read_checkpoint(path, "cpu", trust=trust)
     info = checkpoint["nerf_lightning"]
     config = info["config"]

@@ -208,24 +208,24 @@ def carried_data(source: Path, target: Path, train_views: int = 25, val_views: i
     """The data a 64 MiB lease carries, from ``source`` (../shared/data) into ``target``, of ``scenes``: lego at 800x800
     with every 4th of its train views (25) and the first 5 val views, fox whole, moldGoldCape's images_4, masks_4 and
     poses."""
-    lego, lego_out = source / "nerf_synthetic/lego", target / "nerf_synthetic/lego"
-    for split, count in (("train", train_views), ("val", val_views)) if "lego" in scenes else ():
-        meta = json.loads((lego / f"transforms_{split}.json").read_text())
-        step = max(1, len(meta["frames"]) // count)
-        meta["frames"] = meta["frames"][::step][:count]
-        for frame in meta["frames"]:
-            image = Path(frame["file_path"] + ".png")
-            (lego_out / image.parent).mkdir(parents=True, exist_ok=True)
-            shutil.copy(lego / image, lego_out / image)
-        (lego_out / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
+    if "lego" in scenes:
+        lego, lego_out = source / "nerf_synthetic/lego", target / "nerf_synthetic/lego"
+        for split, count in (("train", train_views), ("val", val_views)):
+            meta = json.loads((lego / f"transforms_{split}.json").read_text())
+            step = max(1, len(meta["frames"]) // count)
+            meta["frames"] = meta["frames"][::step][:count]
+            for frame in meta["frames"]:
+                image = Path(frame["file_path"] + ".png")
+                (lego_out / image.parent).mkdir(parents=True, exist_ok=True)
+                shutil.copy(lego / image, lego_out / image)
+            (lego_out / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
     if "fox" in scenes:
         shutil.copytree(source / "nerfstudio/fox", target / "nerfstudio/fox", dirs_exist_ok=True)
-    if "moldGoldCape" not in scenes:
-        return
-    cape, cape_out = source / "masked_objects/moldGoldCape", target / "masked_objects/moldGoldCape"
-    for name in ("images_4", "masks_4"):
-        shutil.copytree(cape / name, cape_out / name, dirs_exist_ok=True)
-    shutil.copy(cape / "poses_bounds.npy", cape_out / "poses_bounds.npy")
+    if "moldGoldCape" in scenes:
+        cape, cape_out = source / "masked_objects/moldGoldCape", target / "masked_objects/moldGoldCape"
+        for name in ("images_4", "masks_4"):
+            shutil.copytree(cape / name, cape_out / name, dirs_exist_ok=True)
+        shutil.copy(cape / "poses_bounds.npy", cape_out / "poses_bounds.npy")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -4,7 +4,7 @@ extra: its wheel carries COLMAP, nothing else to install), and the result as a n
 Three stages, each with a progress bar: SIFT features of every image (read at most ``max_size`` pixels on their long
 side; the keypoints come back in the full image's pixels, so the cameras are those of the images as written),
 matching with geometric verification of the chosen image pairs (every pair, or each image with its neighbours in
-time for a video), and mapping. Features and matches are fed in chunks so that the bars move: images by the handful,
+time and with the images that look most alike it, for a video or a long capture), and mapping. Features and matches are fed in chunks so that the bars move: images by the handful,
 pairs by the block.
 
 Masks, where given, keep each image's features to its object: COLMAP reads ``<masks>/<image name>.png`` (``IMG_1.jpg``'s
@@ -30,7 +30,7 @@ import contextlib
 import os
 import shutil
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,11 +40,14 @@ from tqdm import tqdm
 
 from nerf_lightning.capture.choices import CAMERA_MODELS, CAMERA_PARAMETERS, COLMAP_EXTRA, MAPPERS, MATCHERS  # noqa: F401 (also read from here)
 from nerf_lightning.capture.images import exif_focal_length, mask_name, natural_key
+from nerf_lightning.capture.retrieval import retrieved_pairs
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 
 # exhaustive matching costs n^2 / 2 pairs: beyond this many images ``auto`` matches neighbours in name order
 EXHAUSTIVE_UP_TO = 100
+# sequential matching's loop closures: each image also with the images this many that look most alike it
+LOOP_NEIGHBOURS = 8
 
 
 def import_pycolmap() -> Any:
@@ -81,17 +84,30 @@ def exhaustive_pairs(count: int, block: int = 10) -> list[list[tuple[int, int]]]
             for a in starts for b in starts if b >= a]
 
 
-def sequential_pairs(count: int, overlap: int = 10, chunk: int = 100) -> list[list[tuple[int, int]]]:
+def sequential_pairs(count: int, overlap: int = 10, chunk: int = 100, loops: Iterable[tuple[int, int]] = ()) -> list[list[tuple[int, int]]]:
     """Each image with the next ``overlap`` ones and with those 2, 4, 8, ... 2^overlap ahead (COLMAP's sequential
-    matcher with quadratic overlap, without loop detection, which needs a vocabulary tree), in chunks of ``chunk``."""
-    pairs = sorted({(i, i + step) for i in range(count) for step in [*range(1, overlap + 1), *(2**k for k in range(overlap))]
-                    if i + step < count})
+    matcher with quadratic overlap), and the ``loops`` pairs (i, j), i < j, besides: the loop closures COLMAP's
+    sequential matcher finds with a vocabulary tree (:func:`loop_closure_pairs`); in chunks of ``chunk``."""
+    pairs = {(i, i + step) for i in range(count) for step in [*range(1, overlap + 1), *(2**k for k in range(overlap))] if i + step < count}
+    pairs = sorted(pairs | set(loops))
     return [pairs[start : start + chunk] for start in range(0, len(pairs), chunk)]
+
+
+def loop_closure_pairs(database: Path, names: Sequence[str], neighbours: int = LOOP_NEIGHBOURS, seed: int = 0) -> set[tuple[int, int]]:
+    """Each of ``names`` paired with the ``neighbours`` images of ``database`` that look most alike it by their SIFT
+    descriptors (:func:`nerf_lightning.capture.retrieval.retrieved_pairs`): (i, j), i < j, indices into ``names``."""
+    pycolmap = import_pycolmap()
+    with contextlib.closing(pycolmap.Database.open(database)) as opened:
+        ids = {image.name: image.image_id for image in opened.read_all_images()}
+        # an image without features (none inside its mask) is paired by chance, which costs a few pairs and no model
+        descriptors = [torch.from_numpy(np.array(opened.read_descriptors(ids[name]).data)) if name in ids else torch.zeros(0, 128)
+                       for name in names]
+    return retrieved_pairs(descriptors, neighbours, seed=seed)
 
 
 def choose_matcher(matcher: str, count: int, from_video: bool) -> str:
     """``exhaustive`` or ``sequential``: ``auto`` matches every pair of photos under ``EXHAUSTIVE_UP_TO`` images and
-    neighbours in time for a video's frames and for larger sets."""
+    neighbours in time, with loop closures, for a video's frames and for larger sets."""
     if matcher not in MATCHERS:
         raise ValueError(f"matcher must be one of {', '.join(MATCHERS)}, got '{matcher}'")
     if matcher != "auto":
@@ -324,7 +340,10 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
         seconds["features"] = time.perf_counter() - started
 
         started = time.perf_counter()
-        pairs = exhaustive_pairs(len(names)) if matcher == "exhaustive" else sequential_pairs(len(names))
+        if matcher == "exhaustive":
+            pairs = exhaustive_pairs(len(names))
+        else:
+            pairs = sequential_pairs(len(names), loops=loop_closure_pairs(database, names, seed=seed))
         match_features(database, names, pairs, colmap_dir / "pairs", seed, progress, guided=strong)
         seconds["matching"] = time.perf_counter() - started
         matched = database_statistics(database)

@@ -1,0 +1,108 @@
+"""Loop closures for sequential matching: images paired with those that look most alike them (capture/retrieval.py),
+on descriptors of a made-up ring of views and on the procedural turntable's own SIFT features."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nerf_lightning.capture.colmap import sequential_pairs
+from nerf_lightning.capture.retrieval import nearest_pairs, retrieved_pairs, root_sift, vlad, visual_words
+from tests.capture.test_process_data import needs_pycolmap
+
+
+def ring_of_views(views: int = 24, landmarks_a_view: int = 60, seen_over: int = 2, seed: int = 0) -> list[torch.Tensor]:
+    """(n_i, 128) uint8-valued descriptors of ``views`` views round a ring: landmarks spread along the ring, each view
+    seeing those within ``seen_over`` views of it (round the end of the ring too) with a little noise, so that the first
+    and the last view share landmarks as neighbours do."""
+    generator = torch.Generator().manual_seed(seed)
+    landmarks = torch.randint(0, 256, (views * landmarks_a_view, 128), generator=generator).float()
+    home = torch.arange(views * landmarks_a_view) // landmarks_a_view  # the view each landmark stands before
+    images = []
+    for view in range(views):
+        apart = (home - view).abs()
+        seen = torch.minimum(apart, views - apart) <= seen_over
+        noise = torch.randn(int(seen.sum()), 128, generator=generator) * 12
+        images.append((landmarks[seen] + noise).clamp(0, 255).round())
+    return images
+
+
+def ring_distance(i: int, j: int, views: int) -> int:
+    return min(abs(i - j), views - abs(i - j))
+
+
+def test_root_sift_is_a_unit_vector_whose_squares_are_the_histogram():
+    descriptors = torch.randint(0, 256, (5, 128)).float()
+    rooted = root_sift(descriptors)
+    assert torch.allclose(rooted.norm(dim=1), torch.ones(5), atol=1e-5)
+    assert torch.allclose(rooted**2, descriptors / descriptors.sum(dim=1, keepdim=True), atol=1e-6)
+
+
+def test_vlad_is_a_unit_summary_that_tells_images_of_different_things_apart():
+    images = ring_of_views(views=12, seen_over=0)
+    rooted = [root_sift(image) for image in images]
+    centres = visual_words(rooted, words=16)
+    summaries = torch.stack([vlad(image, centres) for image in rooted])
+    assert summaries.shape == (12, 16 * 128)
+    assert torch.allclose(summaries.norm(dim=1), torch.ones(12), atol=1e-5)
+    # an image's own descriptors, noised again, are nearer its summary than any other image's
+    again = torch.stack([vlad(root_sift((image + torch.randn_like(image) * 6).clamp(0, 255)), centres) for image in images])
+    assert torch.equal((again @ summaries.T).argmax(dim=1), torch.arange(12))
+
+
+def test_nearest_pairs_pairs_each_image_with_its_most_alike_once():
+    summaries = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0], [0.9, 0.1], [0.0, 1.0], [0.1, 0.9]]), dim=1)
+    assert nearest_pairs(summaries, 1) == {(0, 1), (2, 3)}
+    assert nearest_pairs(summaries[:1], 3) == set()
+    assert len(nearest_pairs(summaries, 10)) == 6  # every pair, each once, where fewer images than neighbours
+
+
+def test_retrieval_closes_the_ring_that_sequential_neighbours_leave_open():
+    views = 24
+    pairs = retrieved_pairs(ring_of_views(views), neighbours=4)
+    # every view paired with views that share its landmarks, the first with the last among them
+    assert all(ring_distance(i, j, views) <= 2 for i, j in pairs), sorted(pairs)
+    assert {(0, 23), (0, 22), (1, 23)} <= pairs
+    sequential = {pair for chunk in sequential_pairs(views, overlap=3) for pair in chunk}
+    assert (0, 23) not in sequential  # what only the loop closure gives
+    merged = [pair for chunk in sequential_pairs(views, overlap=3, chunk=7, loops=pairs) for pair in chunk]
+    assert len(merged) == len(set(merged)) == len(sequential | pairs) and merged == sorted(merged)
+    assert all(i < j for i, j in merged)
+
+
+@needs_pycolmap
+def test_the_turntables_own_features_pair_photos_that_see_the_same_side(tmp_path):
+    """COLMAP's SIFT features of the procedural turntable's photos, inside their masks: the retrieved pairs are photos
+    whose cameras stand close round the object, far more often than pairs drawn at random are."""
+    from nerf_lightning.capture.colmap import colmap_log, extract_features, loop_closure_pairs
+    from nerf_lightning.data.formats import make_turntable_capture
+
+    capture = make_turntable_capture(tmp_path / "capture")
+    names = sorted(path.name for path in (capture / "images").iterdir())
+    masks = tmp_path / "colmap_masks"
+    masks.mkdir()
+    for name in names:  # COLMAP's mask of IMG.png is IMG.png.png
+        (masks / f"{name}.png").write_bytes((capture / "masks" / name).read_bytes())
+    database = tmp_path / "database.db"
+    with colmap_log(False):
+        extract_features(database, capture / "images", names, "PINHOLE", True, 192, 2048, False, masks=masks)
+    pairs = loop_closure_pairs(database, names, neighbours=4)
+
+    frames = {frame["file_path"].split("/")[-1]: np.array(frame["transform_matrix"]) for frame in
+              json.loads((capture / "transforms.json").read_text())["frames"]}
+    directions = np.stack([frames[name][:3, 3] / np.linalg.norm(frames[name][:3, 3]) for name in names])  # from the object
+
+    def angle(i: int, j: int) -> float:
+        return math.degrees(math.acos(float(np.clip(directions[i] @ directions[j], -1.0, 1.0))))
+
+    near = np.mean([angle(i, j) < 45.0 for i, j in pairs])
+    generator = np.random.default_rng(0)
+    drawn = [tuple(generator.choice(len(names), 2, replace=False)) for _ in range(2000)]
+    by_chance = np.mean([angle(i, j) < 45.0 for i, j in drawn])
+    assert len(pairs) >= 2 * len(names)
+    assert near > 0.6 and near > 2 * by_chance, (near, by_chance)

@@ -69,11 +69,12 @@ def masks_label(result: dict[str, Any]) -> str:
 
 
 def capture_label(result: dict[str, Any]) -> str:
-    """A posing row's capture: its name, the photos' folder where not ``images``, and how they were changed
-    (``--photo-change dark:F``)."""
+    """A posing row's capture: its name, the photos' folder where not ``images``, how they were changed
+    (``--photo-change dark:F``), and the matcher where the row asked for one (``-- matcher=...``)."""
     label = result["capture"] + ("" if result.get("images", "images") == "images" else f" {result['images']}/")
     kind, _, factor = (result.get("photo_change") or "").partition(":")
-    return label + (f", photos darkened x {factor}" if kind == "dark" else "")
+    matcher = (result.get("process_capture") or {}).get("matcher")
+    return label + (f", photos darkened x {factor}" if kind == "dark" else "") + (f", matcher={matcher}" if matcher else "")
 
 
 def posing_table(results: list[dict[str, Any]]) -> list[str]:

@@ -64,3 +64,5 @@ def test_the_posing_table_says_how_well_the_masks_agree_where_a_row_measured_it(
     assert lines[2].startswith("| moldGoldCape images_4/ | yes | 20 |")
     darker = posing_table([{**row, "photo_change": "dark:0.25"}])[2]
     assert darker.startswith("| moldGoldCape images_4/, photos darkened x 0.25 | yes | 20 |"), darker
+    sequential = posing_table([{**row, "process_capture": {"matcher": "sequential"}}])[2]
+    assert sequential.startswith("| moldGoldCape images_4/, matcher=sequential | yes | 20 |"), sequential

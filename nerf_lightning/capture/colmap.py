@@ -3,9 +3,9 @@ extra: its wheel carries COLMAP, nothing else to install), and the result as a n
 
 Three stages, each with a progress bar: SIFT features of every image (read at most ``max_size`` pixels on their long
 side; the keypoints come back in the full image's pixels, so the cameras are those of the images as written),
-matching with geometric verification of the chosen image pairs (every pair, or each image with its neighbours in
-time and with the images that look most alike it, for a video or a long capture), and mapping. Features and matches are fed in chunks so that the bars move: images by the handful,
-pairs by the block.
+matching with geometric verification of the chosen image pairs (every pair; or, for a video or a long capture, each
+image with its neighbours in time and with the images that look most alike it), and mapping. Features and matches
+are fed in chunks so that the bars move: images by the handful, pairs by the block.
 
 Masks, where given, keep each image's features to its object: COLMAP reads ``<masks>/<image name>.png`` (``IMG_1.jpg``'s
 is ``IMG_1.jpg.png``; an image without one is skipped, not extracted unmasked) at full size, grey, and drops the
@@ -85,7 +85,7 @@ def exhaustive_pairs(count: int, block: int = 10) -> list[list[tuple[int, int]]]
 
 
 def sequential_pairs(count: int, overlap: int = 10, chunk: int = 100, loops: Iterable[tuple[int, int]] = ()) -> list[list[tuple[int, int]]]:
-    """Each image with the next ``overlap`` ones and with those 2, 4, 8, ... 2^overlap ahead (COLMAP's sequential
+    """Each image with the next ``overlap`` ones and with those 2, 4, 8, ... 2^(overlap - 1) ahead (COLMAP's sequential
     matcher with quadratic overlap), and the ``loops`` pairs (i, j), i < j, besides: the loop closures COLMAP's
     sequential matcher finds with a vocabulary tree (:func:`loop_closure_pairs`); in chunks of ``chunk``."""
     pairs = {(i, i + step) for i in range(count) for step in [*range(1, overlap + 1), *(2**k for k in range(overlap))] if i + step < count}
@@ -100,7 +100,8 @@ def loop_closure_pairs(database: Path, names: Sequence[str], neighbours: int = L
     with contextlib.closing(pycolmap.Database.open(database)) as opened:
         ids = {image.name: image.image_id for image in opened.read_all_images()}
         # an image without features (none inside its mask) is paired by chance, which costs a few pairs and no model
-        descriptors = [torch.from_numpy(np.array(opened.read_descriptors(ids[name]).data)) if name in ids else torch.zeros(0, 128)
+        descriptors = [torch.from_numpy(np.array(opened.read_descriptors(ids[name]).data).reshape(-1, 128)) if name in ids
+                       else torch.zeros(0, 128, dtype=torch.uint8)
                        for name in names]
     return retrieved_pairs(descriptors, neighbours, seed=seed)
 

@@ -35,10 +35,11 @@ def root_sift(descriptors: torch.Tensor) -> torch.Tensor:
 
 def visual_words(descriptors: Sequence[torch.Tensor], words: int = WORDS, per_image: int = 2000, iterations: int = 20,
                  seed: int = 0) -> torch.Tensor:
-    """(words, D) centres of k-means over up to ``per_image`` descriptors drawn from each image's (n_i, D), started from
-    drawn descriptors (Lloyd's iterations; a word left empty keeps its centre)."""
+    """(words, 128) visual words: k-means over the RootSIFT of up to ``per_image`` SIFT descriptors drawn from each
+    image's (n_i, 128), started from drawn ones (Lloyd's iterations; a word left empty keeps its centre)."""
     generator = torch.Generator().manual_seed(seed)
-    sample = torch.cat([image[torch.randperm(len(image), generator=generator)[:per_image]] for image in descriptors])
+    # RootSIFT of the drawn descriptors alone: float copies of a long capture's every descriptor would take gigabytes
+    sample = torch.cat([root_sift(image[torch.randperm(len(image), generator=generator)[:per_image]]) for image in descriptors])
     if len(sample) < words:
         raise ValueError(f"visual_words: {len(sample)} descriptors in all, fewer than the {words} words to cluster them into")
     centres = sample[torch.randperm(len(sample), generator=generator)[:words]].clone()
@@ -75,8 +76,11 @@ def nearest_pairs(summaries: torch.Tensor, neighbours: int) -> set[tuple[int, in
 
 
 def retrieved_pairs(descriptors: Sequence[torch.Tensor], neighbours: int, words: int = WORDS, seed: int = 0) -> set[tuple[int, int]]:
-    """Each of N images, given as its (n_i, 128) SIFT descriptors, paired with its ``neighbours`` most alike by VLAD
-    over words clustered from them all: pairs (i, j), i < j, indices into ``descriptors``."""
-    rooted = [root_sift(image) for image in descriptors]
-    centres = visual_words(rooted, words=words, seed=seed)
-    return nearest_pairs(torch.stack([vlad(image, centres) for image in rooted]), neighbours)
+    """Each of N images, given as its (n_i, 128) SIFT descriptors, paired with its ``neighbours`` most alike by the
+    VLAD of its RootSIFT over words clustered from them all: pairs (i, j), i < j, indices into ``descriptors``. None
+    where the capture has fewer descriptors in all than ``words`` (too few to compare images by; such a capture does
+    not register either, and says so). An image without descriptors summarises to zeros and is paired by chance."""
+    if sum(len(image) for image in descriptors) < words:
+        return set()
+    centres = visual_words(descriptors, words=words, seed=seed)
+    return nearest_pairs(torch.stack([vlad(root_sift(image), centres) for image in descriptors]), neighbours)

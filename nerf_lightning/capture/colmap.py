@@ -4,7 +4,7 @@ extra: its wheel carries COLMAP, nothing else to install), and the result as a n
 Three stages, each with a progress bar: SIFT features of every image (read at most ``max_size`` pixels on their long
 side; the keypoints come back in the full image's pixels, so the cameras are those of the images as written),
 matching with geometric verification of the chosen image pairs (every pair; or, for a video or a long capture, each
-image with its neighbours in time and with the images that look most alike it), and mapping. Features and matches
+image with its neighbours in time and with the images that look most like it), and mapping. Features and matches
 are fed in chunks so that the bars move: images by the handful, pairs by the block.
 
 Masks, where given, keep each image's features to its object: COLMAP reads ``<masks>/<image name>.png`` (``IMG_1.jpg``'s
@@ -46,7 +46,7 @@ from nerf_lightning.geometry.cameras import opengl_to_opencv
 
 # exhaustive matching costs n^2 / 2 pairs: beyond this many images ``auto`` matches neighbours in name order
 EXHAUSTIVE_UP_TO = 100
-# sequential matching's loop closures: each image also with the images this many that look most alike it
+# sequential matching's loop closures: each image also with the images this many that look most like it
 LOOP_NEIGHBOURS = 8
 
 
@@ -94,7 +94,7 @@ def sequential_pairs(count: int, overlap: int = 10, chunk: int = 100, loops: Ite
 
 
 def loop_closure_pairs(database: Path, names: Sequence[str], neighbours: int = LOOP_NEIGHBOURS, seed: int = 0) -> set[tuple[int, int]]:
-    """Each of ``names`` paired with the ``neighbours`` images of ``database`` that look most alike it by their SIFT
+    """Each of ``names`` paired with the ``neighbours`` images of ``database`` that look most like it by their SIFT
     descriptors (:func:`nerf_lightning.capture.retrieval.retrieved_pairs`): (i, j), i < j, indices into ``names``."""
     pycolmap = import_pycolmap()
     with contextlib.closing(pycolmap.Database.open(database)) as opened:

@@ -288,7 +288,7 @@ def process_capture(
         output: the folder to write; what an earlier run wrote there is replaced, anything else is kept.
         frames: for a video, how many frames to take, spread over the clip, the sharpest of each stretch.
         matcher: ``auto``, ``exhaustive`` (every pair) or ``sequential`` (neighbours in name or time order, and loop
-            closures: the images that look most alike each).
+            closures: the images that look most like each).
         mapper: ``auto`` (both of COLMAP's mappers, the model that explains the most verified matches kept),
             ``global`` (GLOMAP) or ``incremental`` (COLMAP's classic mapper).
         camera_model: COLMAP's lens model: OPENCV (k1, k2, p1, p2), SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE.

@@ -34,6 +34,22 @@ def test_with_masks_the_photos_are_posed_around_the_object(turntable, tmp_path):
     assert all(frame["mask_path"] == f"masks/{frame['file_path'].split('/')[-1]}" for frame in meta["frames"])
 
 
+@needs_pycolmap
+def test_sequential_matching_adds_its_loop_closures_and_poses_the_turntable(turntable, tmp_path):
+    from nerf_lightning.capture.colmap import sequential_pairs
+
+    output = tmp_path / "sequential"
+    result = process_data(f"input={turntable / 'images'}", f"masks={turntable / 'masks'}", f"output={output}", "matcher=sequential",
+                          cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads((output / "report.json").read_text())
+    assert report["matcher"] == "sequential"
+    # more pairs than the neighbours in name order alone: the images that look most like each were matched too
+    assert report["matches"]["pairs_matched"] > sum(map(len, sequential_pairs(report["images_given"])))
+    errors = compare_with_reference(output, turntable)
+    assert errors["max_position_error_percent_of_spread"] < 2.0 and errors["max_rotation_error_deg"] < 2.0, errors
+
+
 @pytest.mark.slow  # COLMAP on the turntable without masks (half a minute): out of CI, which keeps the masked one
 @needs_pycolmap
 def test_without_masks_the_room_keeps_the_photos_from_being_posed_around_the_object(turntable, tmp_path):

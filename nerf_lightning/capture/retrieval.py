@@ -1,7 +1,7 @@
 """Which images of a capture look alike, from their own SIFT descriptors: the loop closures of sequential matching.
 
-Matching each image with its neighbours in time (COLMAP's sequential matcher) never matches the last photos of a
-walk round an object with the first, nor a second ring with the first one, though they see the same side. Without
+Matching each image with its neighbours in time (COLMAP's sequential matcher) can leave the last photos of a walk
+round an object unmatched with the first, or a second ring with the first one, though they see the same side. Without
 those pairs a mapper strings the images into a chain whose drift nothing corrects, and can close it wrong: on
 moldGoldCape's 59 photos (a path that wanders over the object's sphere and comes back), sequential matching alone
 gave a model with every image registered and the cameras 94 % of their spread off (docs/benchmarks.md). COLMAP finds
@@ -62,17 +62,18 @@ def vlad(descriptors: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
     return F.normalize(summary.sign() * summary.abs().sqrt(), dim=0)
 
 
-def nearest_pairs(summaries: torch.Tensor, neighbours: int) -> set[tuple[int, int]]:
-    """(N, E) unit summaries of N images -> each image paired with its ``neighbours`` most alike by cosine (fewer
-    where there are fewer other images), as (i, j) with i < j."""
-    count = len(summaries)
+def nearest_pairs(similarity: torch.Tensor, neighbours: int) -> set[tuple[int, int]]:
+    """(N, N) how alike N images are (higher: more; -inf: never paired; the diagonal is ignored) -> each image paired
+    with its ``neighbours`` most alike (fewer where there are fewer other images, or fewer it may be paired with), as
+    (i, j) with i < j."""
+    count = len(similarity)
     taken = min(neighbours, count - 1)
     if taken <= 0:
         return set()
-    similarity = summaries @ summaries.T
-    similarity.fill_diagonal_(-float("inf"))
-    nearest = similarity.topk(taken, dim=1).indices
-    return {(min(i, j), max(i, j)) for i in range(count) for j in nearest[i].tolist()}
+    similarity = similarity.clone().fill_diagonal_(-float("inf"))
+    nearest = similarity.topk(taken, dim=1)
+    return {(min(i, j), max(i, j)) for i in range(count) for j, alike in zip(nearest.indices[i].tolist(), nearest.values[i].tolist())
+            if alike > -float("inf")}
 
 
 def retrieved_pairs(descriptors: Sequence[torch.Tensor], neighbours: int, words: int = WORDS, seed: int = 0) -> set[tuple[int, int]]:
@@ -83,4 +84,5 @@ def retrieved_pairs(descriptors: Sequence[torch.Tensor], neighbours: int, words:
     if sum(len(image) for image in descriptors) < words:
         return set()
     centres = visual_words(descriptors, words=words, seed=seed)
-    return nearest_pairs(torch.stack([vlad(root_sift(image), centres) for image in descriptors]), neighbours)
+    summaries = torch.stack([vlad(root_sift(image), centres) for image in descriptors])
+    return nearest_pairs(summaries @ summaries.T, neighbours)

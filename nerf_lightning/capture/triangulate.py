@@ -26,6 +26,7 @@ import torch
 
 from nerf_lightning.capture.colmap import (chunks, colmap_log, database_statistics, exhaustive_pairs, extract_features, import_pycolmap,
                                            match_features, model_statistics, sparse_points)
+from nerf_lightning.capture.retrieval import nearest_pairs
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.scene import Views
 from nerf_lightning.io import write_png
@@ -40,17 +41,12 @@ def pose_pairs(c2w: torch.Tensor, neighbours: int = NEIGHBOURS, chunk: int = 100
     ``chunk``: each view with the ``neighbours`` others nearest by the distance of their centres (over the cameras'
     mean distance from their centroid) plus one minus the cosine between their viewing directions; views looking away
     from each other (more than 90 degrees) are never paired."""
-    count = len(c2w)
     centres, forward = c2w[:, :3, 3].double(), c2w[:, :3, 2].double()
     spread = (centres - centres.mean(dim=0)).norm(dim=-1).mean().clamp_min(1e-12)
     cosine = forward @ forward.T
     distance = torch.cdist(centres, centres) / spread + (1.0 - cosine)
     distance[cosine <= 0.0] = torch.inf
-    distance.fill_diagonal_(torch.inf)
-    nearest = distance.topk(min(neighbours, count - 1), dim=1, largest=False)
-    pairs = sorted({(min(i, j), max(i, j)) for i in range(count) for j, gap in zip(nearest.indices[i].tolist(), nearest.values[i].tolist())
-                    if gap < torch.inf})
-    return [list(part) for part in chunks(pairs, chunk)]
+    return [list(part) for part in chunks(sorted(nearest_pairs(-distance, neighbours)), chunk)]
 
 
 def write_views(views: Views, folder: Path, masks: bool) -> list[str]:

@@ -3,7 +3,6 @@ on descriptors of a made-up ring of views and on the procedural turntable's own 
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 
@@ -81,9 +80,10 @@ def test_images_without_features_are_paired_and_a_featureless_capture_gives_no_p
 
 def test_nearest_pairs_pairs_each_image_with_its_most_alike_once():
     summaries = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0], [0.9, 0.1], [0.0, 1.0], [0.1, 0.9]]), dim=1)
-    assert nearest_pairs(summaries, 1) == {(0, 1), (2, 3)}
-    assert nearest_pairs(summaries[:1], 3) == set()
-    assert len(nearest_pairs(summaries, 10)) == 6  # every pair, each once, where fewer images than neighbours
+    similarity = summaries @ summaries.T
+    assert nearest_pairs(similarity, 1) == {(0, 1), (2, 3)}
+    assert nearest_pairs(similarity[:1, :1], 3) == set()
+    assert len(nearest_pairs(similarity, 10)) == 6  # every pair, each once, where fewer images than neighbours
 
 
 def test_retrieval_closes_the_ring_that_sequential_neighbours_leave_open():

@@ -145,7 +145,7 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
                 {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, "points": 0,
                  "views_matched": len(kept)}
         # the triangulator's own sampling seeded, not left to COLMAP's default, so that the same views give the same
-        # points (tested, to a rare point); COLMAP's global generator too, as map_images seeds it, which
+        # points (tested, to a few points); COLMAP's global generator too, as map_images seeds it, which
         # triangulate_points does not seed from the options
         pycolmap.set_random_seed(seed)
         options = pycolmap.IncrementalPipelineOptions()

@@ -72,9 +72,9 @@ def test_a_masked_turntable_triangulated_from_its_poses_lies_on_the_object(scene
     assert float(off.median()) > 10 * pixel
     assert report["views_matched"] == len(views)
     # the same views give the same points, bit for bit, but for a few in a rare run: the images are numbered in their
-    # names' order (80 runs of this turntable since gave the same 754 points; before, 4 in 160 kept 730 to 753 of
-    # them), but COLMAP's matching threads still verify about 1 run in 40 with a pair or two matched differently (none
-    # in 59 runs on one thread, which would cost the matching half its speed on 2 cores)
+    # names' sorted order (80 runs of this turntable since gave the same 754 points; before, 4 in 160 kept 730 to 753
+    # of them), but COLMAP's matching threads still verify a pair or two differently about 1 run in 40 (numbered in
+    # order, 1 in 39 runs; none in 59 on one matching thread, which would cost the matching half its speed on 2 cores)
     again, _ = triangulate_views(views)
     match = (again.positions[:, None, :] == points.positions[None, :, :]).all(-1)
     assert abs(len(again) - len(points)) <= 0.03 * len(points) and int(match.any(1).sum()) >= 0.95 * len(points), \

@@ -297,7 +297,10 @@ class SplatModule(SceneModule):
                 colours = spherical_harmonics(degree, coefficients, directions)
         background = self.space.background if background is None else background
         with record_function("splats.rasterize"):
-            out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs)
+            # the absolute screen-space gradients where the strategy reads them (AbsGS), in training only
+            absgrad = self.training and self.strategy is not None and self.strategy.absgrad
+            out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs,
+                                 absgrad)
         out["depth"] = out["depth"] * pixel_ray_lengths(K, height, width)
         return out, projection
 
@@ -366,6 +369,9 @@ class SplatModule(SceneModule):
             projection, width, height, share = self._drawn
             if share != 1.0 and projection.means2d.grad is not None:
                 projection.means2d.grad.mul_(share)
+                absgrad = getattr(projection.means2d, "absgrad", None)
+                if absgrad is not None:
+                    absgrad.mul_(share)
             with record_function("splats.strategy"):
                 self.strategy.after_backward(self.gaussians, projection, width, height)
 

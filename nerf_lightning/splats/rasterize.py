@@ -8,6 +8,10 @@ as the NeRF renderers composite a ray's samples (a pixel is a ray whose samples 
 
 Memory grows with the pairs, about 100 bytes each with gradients: a view whose pairs exceed ``max_pairs`` is drawn in
 bands of rows, each within the budget (a single row over it is drawn alone).
+
+Asked with ``absgrad=True``, every rasteriser's backward pass also leaves ``means2d.absgrad`` (:func:`keep_absgrad`):
+for each footprint, the sum over its pixels of the absolute value of each pixel's pull on its centre (AbsGS's
+densification statistic, which a strategy asks for).
 """
 
 from __future__ import annotations
@@ -51,10 +55,24 @@ def row_bands(boxes: torch.Tensor, height: int, max_pairs: int) -> list[tuple[in
     return bands
 
 
+def keep_absgrad(means2d: torch.Tensor, wanted: bool = True) -> torch.Tensor | None:
+    """Zeros (M, 2), kept as ``means2d.absgrad`` for the backward pass to fill with each footprint's absolute
+    screen-space gradient: the sum over its pixels of |d loss / d sigma_p x d sigma_p / d means2d|, each pixel's pull
+    taken alone, so that opposite pulls do not cancel (AbsGS; gsplat's ``absgrad``; a strategy may read it). None,
+    and nothing kept, where not ``wanted`` or where no gradient will reach ``means2d`` (M, 2)."""
+    if not (wanted and torch.is_grad_enabled() and means2d.requires_grad):
+        return None
+    means2d.absgrad = torch.zeros(means2d.shape, dtype=torch.promote_types(means2d.dtype, torch.float32), device=means2d.device)
+    return means2d.absgrad
+
+
 def rasterize(projection: Projection, colours: torch.Tensor, height: int, width: int, background: torch.Tensor,
-              max_pairs: int = MAX_PAIRS) -> dict[str, torch.Tensor]:
+              max_pairs: int = MAX_PAIRS, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
-    something is drawn), accumulation (H, W); ``background`` (3,). Differentiable in the footprints and colours."""
+    something is drawn), accumulation (H, W); ``background`` (3,). Differentiable in the footprints and colours; with
+    ``absgrad``, the backward pass fills ``projection.means2d.absgrad`` (:func:`keep_absgrad`: here about a tenth more
+    time a step, for the pairs' own pulls)."""
+    absgrad = keep_absgrad(projection.means2d, absgrad)
     # footprints nearest first: pairs are listed footprint by footprint, so one stable sort by pixel leaves every
     # pixel's pairs nearest first (ties by the footprints' order)
     nearest_first = torch.sort(projection.depths.detach(), stable=True).indices
@@ -66,7 +84,8 @@ def rasterize(projection: Projection, colours: torch.Tensor, height: int, width:
     shaded = colours.new_zeros(n_pixels, 4)
     accumulation = colours.new_zeros(n_pixels)
     for start, stop in row_bands(boxes, height, max_pairs):
-        footprint, pixel, alpha = drawn_pairs(footprints, boxes, start, stop, width)
+        footprint, pixel, alpha = drawn_pairs(footprints, boxes, start, stop, width,
+                                              None if absgrad is None else (absgrad, nearest_first))
         pixel, order = torch.sort(pixel, stable=True)
         pixel, footprint, alpha = pixel.long(), footprint.index_select(0, order), alpha.index_select(0, order)
         # the band's pixels numbered from its first: compositing lays out rows of pairs for each of them only
@@ -88,15 +107,16 @@ def shaded_view(shaded: torch.Tensor, accumulation: torch.Tensor, background: to
 
 
 def composite_features(composite, projection: Projection, colours: torch.Tensor, height: int, width: int,
-                       background: torch.Tensor) -> dict[str, torch.Tensor]:
+                       background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Draw a view with a tile rasteriser's autograd function ``composite`` (``TileRasterize.apply``,
-    ``TritonRasterize.apply``: means2d, conics, opacities, (M, 4) features, (M, 4) pixel boxes, height, width ->
-    shaded (H, W, 4), accumulation (H, W)), the footprints' features their colours and their depth (the last, which
-    orders them); then :func:`shaded_view`."""
+    ``TritonRasterize.apply``: means2d, conics, opacities, (M, 4) features, (M, 4) pixel boxes, height, width, and
+    the (M, 2) tensor its backward pass fills with the absolute screen-space gradients or None (:func:`keep_absgrad`)
+    -> shaded (H, W, 4), accumulation (H, W)), the footprints' features their colours and their depth (the last,
+    which orders them); then :func:`shaded_view`. With ``absgrad``, ``projection.means2d.absgrad`` is kept."""
     boxes = pixel_boxes(projection, height, width)
     features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
     shaded, accumulation = composite(projection.means2d, projection.conics, projection.opacities, features, boxes,
-                                     height, width)
+                                     height, width, keep_absgrad(projection.means2d, absgrad))
     return shaded_view(shaded, accumulation, background)
 
 
@@ -106,8 +126,8 @@ def footprint_table(projection: Projection) -> torch.Tensor:
     return torch.cat([projection.means2d, projection.conics, projection.opacities[:, None]], dim=-1)
 
 
-def drawn_pairs(footprints: torch.Tensor, boxes: torch.Tensor, start: int, stop: int,
-                width: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def drawn_pairs(footprints: torch.Tensor, boxes: torch.Tensor, start: int, stop: int, width: int,
+                absgrad: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The (footprint, pixel) pairs drawn within rows [start, stop), footprint by footprint and each box row-major:
     (P,) int32 footprint indices, (P,) int32 pixel indices (row * W + column) and (P,) alphas,
     min(0.999, o exp(-sigma)), the pixels of each footprint's box where the alpha is at least 1/255.
@@ -116,7 +136,10 @@ def drawn_pairs(footprints: torch.Tensor, boxes: torch.Tensor, start: int, stop:
     two steps, each a ``repeat_interleave``: every footprint's rows within its box (a span), then the columns of each
     span where the footprint is drawn. Along a span dy is fixed and sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is a
     quadratic in dx, so those columns are the interval where sigma <= log(255 o), solved for once a span: no pair is
-    listed only to be dropped."""
+    listed only to be dropped.
+
+    With ``absgrad`` (a (M0, 2) sum and (M,) the row of it each footprint adds to), the backward pass adds each pair's
+    absolute pull on its footprint's centre, |d loss / d sigma| x |(a dx + b dy, b dx + c dy)| (:func:`keep_absgrad`)."""
     device = boxes.device
     first_row, last_row = boxes[:, 2].clamp(min=start), boxes[:, 3].clamp(max=stop - 1)
     columns = (boxes[:, 1] - boxes[:, 0] + 1).clamp(min=0)
@@ -146,4 +169,16 @@ def drawn_pairs(footprints: torch.Tensor, boxes: torch.Tensor, start: int, stop:
     alpha = (opacity * torch.exp(-sigma)).clamp(max=MAX_ALPHA)
     footprint = span.int().index_select(0, which)
     pixel = (row * width + first).int().index_select(0, which) + step.int()
+    if absgrad is not None and sigma.requires_grad:
+        total, rows = absgrad
+        pair_rows = rows.index_select(0, footprint.long())
+
+        def add_pulls(grad_sigma: torch.Tensor) -> None:  # (P,) d loss / d sigma of each pair
+            with torch.no_grad():
+                b_p, c_p, dy_p = (value.detach().index_select(0, which) for value in (b, c, dy))
+                x = dx.detach()
+                pull = torch.stack([2.0 * half_a.detach() * x + b_p * dy_p, b_p * x + c_p * dy_p], dim=-1)  # (P, 2)
+                total.index_add_(0, pair_rows, (grad_sigma[:, None] * pull).abs().to(total.dtype))
+
+        sigma.register_hook(add_pulls)
     return footprint, pixel, alpha

@@ -18,12 +18,14 @@ import torch
 
 from nerf_lightning.rendering.compositing import weights_from_alpha
 from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
+from nerf_lightning.splats.rasterize import keep_absgrad
 
 
 def rasterize_dense(projection: Projection, colours: torch.Tensor, height: int, width: int,
-                    background: torch.Tensor) -> dict[str, torch.Tensor]:
+                    background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, where something is
-    drawn: the weights' mean), accumulation (H, W); ``background`` (3,)."""
+    drawn: the weights' mean), accumulation (H, W); ``background`` (3,). With ``absgrad``, the backward pass fills
+    ``projection.means2d.absgrad`` (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
     v, u = torch.meshgrid(torch.arange(height, device=colours.device, dtype=colours.dtype) + 0.5,
                           torch.arange(width, device=colours.device, dtype=colours.dtype) + 0.5, indexing="ij")
     order = torch.sort(projection.depths.detach(), stable=True).indices  # nearest first
@@ -32,6 +34,14 @@ def rasterize_dense(projection: Projection, colours: torch.Tensor, height: int, 
     dy = v.reshape(1, -1) - means2d[:, 1:2]
     a, b, c = conics[:, 0:1], conics[:, 1:2], conics[:, 2:3]
     sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+    absgrad = keep_absgrad(projection.means2d, absgrad)
+    if absgrad is not None:  # each pixel's pull on a footprint's centre, d loss / d sigma x d sigma / d means2d, alone
+        def add_pulls(grad_sigma: torch.Tensor) -> None:  # (M, H * W)
+            x, y = dx.detach(), dy.detach()
+            pull = torch.stack([a.detach() * x + b.detach() * y, b.detach() * x + c.detach() * y], dim=-1)  # (M, H * W, 2)
+            absgrad.index_add_(0, order, (grad_sigma[..., None] * pull).abs().sum(dim=1).to(absgrad.dtype))
+
+        sigma.register_hook(add_pulls)
     alpha = (projection.opacities[order, None] * torch.exp(-sigma)).clamp(max=MAX_ALPHA)
     extents = projection.extents[order].detach()
     counts = (dx.detach().abs() <= extents[:, 0:1]) & (dy.detach().abs() <= extents[:, 1:2]) & (sigma.detach() >= 0) \

@@ -17,7 +17,8 @@ equal), without a tensor of (footprint, pixel) pairs:
    transmittance before a footprint from the one after it (T_i = T_i+1 / (1 - alpha_i)) and the weighted gradient
    sum of the footprints behind it, so that d loss / d alpha_i = T_i g_i - (sum_{j > i} w_j g_j) / (1 - alpha_i).
    A footprint's gradient within a tile is summed over the tile's pixels in a fixed order into its own slot of the
-   tile list; :func:`sum_slots` then adds a footprint's slots in a fixed order. No two threads add into one number, so
+   tile list, beside the sum of the absolute values of each pixel's pull on its centre (``means2d.absgrad``:
+   :func:`~nerf_lightning.splats.rasterize.keep_absgrad`); :func:`sum_slots` then adds a footprint's slots in a fixed order. No two threads add into one number, so
    the same input gives the same gradients bit for bit, however the threads are scheduled.
 
 Transmittances and sums are carried in float64 inside the loops (a pixel may take hundreds of footprints, and the
@@ -47,6 +48,9 @@ FEATURES = 4
 # a packed footprint's row (:func:`pack_footprints`): means2d (2), conic (3), opacity, fade limit, features (4), pixel
 # box (4: first and last column, first and last row), one unused (16 float64: two cache lines)
 PACKED = 16
+# a footprint's gradient from one tile: means2d (2), conic (3), opacity, features (4), and the absolute pulls on its
+# centre (2: its absgrad)
+GRADIENTS = 12
 
 
 def depth_keys(depths: np.ndarray) -> tuple[np.ndarray, int]:
@@ -239,8 +243,9 @@ def composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shad
 def composite_tiles_backward(offsets, entries, packed, height, width, tile, tiles_x, transmittance, stop, grad_shaded,
                              grad_accumulation, slot_grads):
     """The gradients of :func:`composite_tiles`, back to front. ``grad_shaded`` (H * W, 4) and ``grad_accumulation``
-    (H * W,) are the loss's gradients of its outputs; written: ``slot_grads`` (E, 10), for each tile-list entry
-    its footprint's gradient from that tile's pixels: d means2d (2), d conics (3), d opacity, d features (4)."""
+    (H * W,) are the loss's gradients of its outputs; written: ``slot_grads`` (E, :data:`GRADIENTS`), for each
+    tile-list entry its footprint's gradient from that tile's pixels: d means2d (2), d conics (3), d opacity, d
+    features (4), and the sums of the absolute values of each pixel's d means2d (2)."""
     n_tiles = offsets.shape[0] - 1
     for t in numba.prange(n_tiles):
         y0, x0, y1, x1 = tile_rectangle(t, tiles_x, tile, height, width)
@@ -263,7 +268,7 @@ def composite_tiles_backward(offsets, entries, packed, height, width, tile, tile
             o, faint = packed[r, 5], packed[r, 6]
             f0, f1, f2, f3 = packed[r, 7], packed[r, 8], packed[r, 9], packed[r, 10]
             first, last = max(int(packed[r, 11]), x0), min(int(packed[r, 12]), x1 - 1)
-            g_mx = g_my = g_a = g_b = g_c = g_o = g_f0 = g_f1 = g_f2 = g_f3 = 0.0
+            g_mx = g_my = g_a = g_b = g_c = g_o = g_f0 = g_f1 = g_f2 = g_f3 = g_ax = g_ay = 0.0
             for row in range(max(int(packed[r, 13]), y0), min(int(packed[r, 14]), y1 - 1) + 1):
                 dy = row + 0.5 - my
                 b_dy, c_dy2 = b * dy, 0.5 * c * dy * dy
@@ -295,13 +300,17 @@ def composite_tiles_backward(offsets, entries, packed, height, width, tile, tile
                     if o * falloff <= MAX_ALPHA:  # the clamp passes no gradient
                         g_o += falloff * grad_alpha
                         grad_sigma = -alpha * grad_alpha
-                        g_mx -= grad_sigma * (a * dx + b * dy)
-                        g_my -= grad_sigma * (c * dy + b * dx)
+                        pull_x, pull_y = grad_sigma * (a * dx + b * dy), grad_sigma * (c * dy + b * dx)
+                        g_mx -= pull_x
+                        g_my -= pull_y
+                        g_ax += abs(pull_x)
+                        g_ay += abs(pull_y)
                         g_a += grad_sigma * 0.5 * dx * dx
                         g_b += grad_sigma * dx * dy
                         g_c += grad_sigma * 0.5 * dy * dy
             slot_grads[k, 0], slot_grads[k, 1], slot_grads[k, 2], slot_grads[k, 3], slot_grads[k, 4] = g_mx, g_my, g_a, g_b, g_c
             slot_grads[k, 5], slot_grads[k, 6], slot_grads[k, 7], slot_grads[k, 8], slot_grads[k, 9] = g_o, g_f0, g_f1, g_f2, g_f3
+            slot_grads[k, 10], slot_grads[k, 11] = g_ax, g_ay
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -329,10 +338,11 @@ def _numpy(tensor: torch.Tensor) -> np.ndarray:
 class TileRasterize(torch.autograd.Function):
     """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, 4) features -> (H, W, 4) weighted feature sums and (H, W)
     accumulation, differentiable in the four inputs; on CPU tensors. The last feature is the depth the footprints are
-    ordered by; ``boxes`` (M, 4) are their pixel boxes."""
+    ordered by; ``boxes`` (M, 4) are their pixel boxes; ``absgrad`` (M, 2) or None, what the backward pass fills with
+    the absolute screen-space gradients (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int):
+    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int, absgrad=None):
         if features.ndim != 2 or features.shape[1] != FEATURES:
             raise ValueError(f"TileRasterize draws (M, {FEATURES}) features (colour and depth), got {tuple(features.shape)}")
         tile = TILE
@@ -349,6 +359,7 @@ class TileRasterize(torch.autograd.Function):
         stop = np.empty(n_pixels, np.int64)
         composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shaded, accumulation, transmittance, stop)
         ctx.saved = (order, offsets, entries, slot_offsets, slots, packed, dtype, transmittance, stop, height, width, tile, tiles_x)
+        ctx.absgrad = absgrad
         return (torch.from_numpy(shaded).reshape(height, width, -1), torch.from_numpy(accumulation).reshape(height, width))
 
     @staticmethod
@@ -358,18 +369,21 @@ class TileRasterize(torch.autograd.Function):
             _numpy(grad_shaded).astype(dtype, copy=False).reshape(-1, FEATURES)
         grad_accumulation = np.zeros(height * width, dtype) if grad_accumulation is None else \
             _numpy(grad_accumulation).astype(dtype, copy=False).reshape(-1)
-        slot_grads = np.empty((len(entries), 6 + FEATURES), np.float64)
+        slot_grads = np.empty((len(entries), GRADIENTS), np.float64)
         composite_tiles_backward(offsets, entries, packed, height, width, tile, tiles_x, transmittance, stop,
                                  grad_shaded, grad_accumulation, slot_grads)
-        grads = np.zeros((len(order), 6 + FEATURES), np.float64)
+        grads = np.zeros((len(order), GRADIENTS), np.float64)
         sum_slots(order, slot_offsets, slots, slot_grads, grads)
         grads = torch.from_numpy(grads.astype(dtype))
-        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None
+        if ctx.absgrad is not None:
+            ctx.absgrad.copy_(grads[:, 10:12])
+        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:10], None, None, None, None
 
 
 def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, width: int,
-                    background: torch.Tensor) -> dict[str, torch.Tensor]:
+                    background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). CPU tensors; differentiable in the footprints and
-    colours (and the background)."""
-    return composite_features(TileRasterize.apply, projection, colours, height, width, background)
+    colours (and the background); with ``absgrad``, the backward pass fills ``projection.means2d.absgrad``
+    (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
+    return composite_features(TileRasterize.apply, projection, colours, height, width, background, absgrad)

@@ -15,8 +15,9 @@ equal), without a tensor of (footprint, pixel) pairs, and the same steps as the 
 3. **Backward** (``_composite_backward``): each tile walks its list back to front from the saved transmittance
    (T_i = T_i+1 / (1 - alpha_i)), carrying the weighted gradient sum of the footprints behind, so that
    d loss / d alpha_i = T_i g_i - (sum_{j > i} w_j g_j) / (1 - alpha_i). A footprint's gradient from one tile is
-   summed over the tile's pixels (a reduction of fixed shape) into the footprint's own slot; ``_sum_slots`` then adds a
-   footprint's slots in tile order. No two programs add into one number (no atomics), so the same input gives the
+   summed over the tile's pixels (a reduction of fixed shape) into the footprint's own slot, beside the sums of the
+   absolute values of each pixel's pull on its centre (``means2d.absgrad``:
+   :func:`~nerf_lightning.splats.rasterize.keep_absgrad`); ``_sum_slots`` then adds a footprint's slots in tile order. No two programs add into one number (no atomics), so the same input gives the
    same gradients bit for bit.
 
 Transmittance, the per-pixel sums, the sum behind and a tile's gradient sums are carried in float64 (a pixel may take
@@ -45,8 +46,9 @@ FEATURES = 4
 # a packed footprint's row: means2d (2), conic (3), opacity, features (4), pixel box (4: first and last column, first
 # and last row), two unused (16 numbers: whole cache sectors)
 PACKED = 16
-# a footprint's gradient from one tile: means2d (2), conic (3), opacity, features (4)
-GRADIENTS = 10
+# a footprint's gradient from one tile: means2d (2), conic (3), opacity, features (4), and the absolute pulls on its
+# centre (2: its absgrad)
+GRADIENTS = 12
 # footprints a program of _sum_slots adds up
 SUM_BLOCK = 128
 
@@ -126,9 +128,10 @@ def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumul
 def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_x, transmittance, stop, grad_shaded,
                         grad_accumulation, slot_grads, TILE: tl.constexpr, PACKED: tl.constexpr,
                         GRADIENTS: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr):
-    """Backward: one program a tile, back to front. Written: slot_grads (E, 10), at each tile-list entry's slot
+    """Backward: one program a tile, back to front. Written: slot_grads (E, 12), at each tile-list entry's slot
     (``slot_of``), its footprint's gradient from this tile's pixels: d means2d (2), d conic (3), d opacity, d features
-    (4). Entries past every pixel's stop keep the zeros they were given."""
+    (4), and the sums of the absolute values of each pixel's d means2d (2). Entries past every pixel's stop keep the
+    zeros they were given."""
     t = tl.program_id(0)
     lane = tl.arange(0, TILE * TILE)
     column = (t % tiles_x) * TILE + lane % TILE
@@ -166,8 +169,10 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
             grad_sigma = tl.where(unclamped, -alpha64 * grad_alpha, 0.0)
             x, y = dx.to(tl.float64), dy.to(tl.float64)
             slot = slot_grads + tl.load(slot_of + k) * GRADIENTS
-            tl.store(slot + 0, -tl.sum(grad_sigma * (a * x + b * y), axis=0))
-            tl.store(slot + 1, -tl.sum(grad_sigma * (c * y + b * x), axis=0))
+            pull_x = grad_sigma * (a * x + b * y)
+            pull_y = grad_sigma * (c * y + b * x)
+            tl.store(slot + 0, -tl.sum(pull_x, axis=0))
+            tl.store(slot + 1, -tl.sum(pull_y, axis=0))
             tl.store(slot + 2, tl.sum(grad_sigma * 0.5 * x * x, axis=0))
             tl.store(slot + 3, tl.sum(grad_sigma * x * y, axis=0))
             tl.store(slot + 4, tl.sum(grad_sigma * 0.5 * y * y, axis=0))
@@ -177,6 +182,8 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
             tl.store(slot + 7, tl.sum(drawn * g1, axis=0))
             tl.store(slot + 8, tl.sum(drawn * g2, axis=0))
             tl.store(slot + 9, tl.sum(drawn * g3, axis=0))
+            tl.store(slot + 10, tl.sum(tl.abs(pull_x), axis=0))
+            tl.store(slot + 11, tl.sum(tl.abs(pull_y), axis=0))
 
 
 @triton.jit
@@ -236,10 +243,11 @@ def bin_footprints(packed: torch.Tensor, tiles_x: int, tiles_y: int) -> tuple[to
 class TritonRasterize(torch.autograd.Function):
     """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, 4) features -> (H, W, 4) weighted feature sums and (H, W)
     accumulation, differentiable in the four inputs. The last feature is the depth the footprints are ordered by;
-    ``boxes`` (M, 4) are their pixel boxes."""
+    ``boxes`` (M, 4) are their pixel boxes; ``absgrad`` (M, 2) or None, what the backward pass fills with the absolute
+    screen-space gradients (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int):
+    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int, absgrad=None):
         if features.ndim != 2 or features.shape[1] != FEATURES:
             raise ValueError(f"TritonRasterize draws (M, {FEATURES}) features (colour and depth), got {tuple(features.shape)}")
         composite, _, _ = kernels(features.device.type)
@@ -269,6 +277,7 @@ class TritonRasterize(torch.autograd.Function):
                                             MIN_ALPHA=MIN_ALPHA, MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
         ctx.save_for_backward(order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop)
         ctx.size = (height, width, tiles_x, tiles_y)
+        ctx.absgrad = absgrad
         return shaded.reshape(height, width, FEATURES), accumulation.reshape(height, width)
 
     @staticmethod
@@ -284,7 +293,7 @@ class TritonRasterize(torch.autograd.Function):
         n_footprints = len(order)
         if len(entries) == 0:
             zeros = packed.new_zeros(n_footprints, GRADIENTS)
-            return zeros[:, 0:2], zeros[:, 2:5], zeros[:, 5], zeros[:, 6:], None, None, None
+            return zeros[:, 0:2], zeros[:, 2:5], zeros[:, 5], zeros[:, 6:10], None, None, None, None
         slot_grads = packed.new_zeros(len(entries), GRADIENTS)
         composite_backward[(tiles_x * tiles_y,)](packed, offsets, entries, slot_of, height, width, tiles_x,
                                                  transmittance, stop, grad_shaded, grad_accumulation, slot_grads,
@@ -294,12 +303,15 @@ class TritonRasterize(torch.autograd.Function):
         sum_slots[(triton.cdiv(n_footprints, SUM_BLOCK),)](slot_grads, first_slot, n_slots, drawn_order, n_footprints,
                                                            BLOCK=SUM_BLOCK, GRADIENTS=GRADIENTS)
         grads = torch.empty_like(drawn_order).index_copy_(0, order, drawn_order)  # back to the footprints' order
-        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None
+        if ctx.absgrad is not None:
+            ctx.absgrad.copy_(grads[:, 10:12])
+        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:10], None, None, None, None
 
 
 def rasterize_triton(projection: Projection, colours: torch.Tensor, height: int, width: int,
-                     background: torch.Tensor) -> dict[str, torch.Tensor]:
+                     background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). CUDA tensors (CPU ones in Triton's interpreter);
-    differentiable in the footprints and colours (and the background)."""
-    return composite_features(TritonRasterize.apply, projection, colours, height, width, background)
+    differentiable in the footprints and colours (and the background); with ``absgrad``, the backward pass fills
+    ``projection.means2d.absgrad`` (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
+    return composite_features(TritonRasterize.apply, projection, colours, height, width, background, absgrad)

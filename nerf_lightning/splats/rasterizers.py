@@ -100,12 +100,14 @@ def choose_rasterizer(device_type: str, rasterizer: str = AUTO) -> str:
 
 
 def rasterize_view(projection: Projection, colours: torch.Tensor, height: int, width: int, background: torch.Tensor,
-                   rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS) -> dict[str, torch.Tensor]:
+                   rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W), accumulation (H, W), drawn by the
-    rasteriser :func:`choose_rasterizer` picks; ``max_pairs`` bounds the ``pairs`` rasteriser's memory."""
+    rasteriser :func:`choose_rasterizer` picks; ``max_pairs`` bounds the ``pairs`` rasteriser's memory; with
+    ``absgrad``, the backward pass fills ``projection.means2d.absgrad``
+    (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
     chosen = choose_rasterizer(colours.device.type, rasterizer)
     if chosen == TILES:
-        return _tiles.rasterize_tiles(projection, colours, height, width, background)
+        return _tiles.rasterize_tiles(projection, colours, height, width, background, absgrad)
     if chosen == TRITON:
-        return _triton.rasterize_triton(projection, colours, height, width, background)
-    return rasterize(projection, colours, height, width, background, max_pairs)
+        return _triton.rasterize_triton(projection, colours, height, width, background, absgrad)
+    return rasterize(projection, colours, height, width, background, max_pairs, absgrad)

@@ -4,8 +4,12 @@ the backward pass and, every so many steps, grows, prunes or resets the Gaussian
 
 The interface a splat model calls:
 
+- ``absgrad``: whether ``after_backward`` reads the absolute screen-space gradients; the model then asks the
+  rasteriser to keep them.
 - ``after_backward(gaussians, projection, width, height)``: the step's view has been drawn and its loss
-  backpropagated; ``projection.means2d.grad`` holds the screen-space gradient of the Gaussians it saw.
+  backpropagated; ``projection.means2d.grad`` holds the screen-space gradient of the Gaussians it saw, and, where
+  ``absgrad`` asked for it, ``projection.means2d.absgrad`` (M, 2) the sum over the pixels of the absolute values of
+  each pixel's share of it (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`).
 - ``after_step(gaussians, step, replace, means_lr)``: the optimiser has stepped (``step`` steps done) with the
   means at learning rate ``means_lr`` (MCMC scales its noise by it): refine if it is time.
 - ``loss(gaussians)``: a regulariser the model adds to its loss (MCMC's), or None.
@@ -34,6 +38,8 @@ Replace = Callable[[nn.Module, str, torch.Tensor, torch.Tensor | None], nn.Param
 
 
 class Strategy(Protocol):
+    absgrad: bool
+
     def after_backward(self, gaussians: Gaussians, projection: Projection, width: int, height: int) -> None: ...
 
     def after_step(self, gaussians: Gaussians, step: int, replace: Replace, means_lr: float) -> None: ...
@@ -52,6 +58,12 @@ class DefaultStrategy:
     cut to twice ``prune_opacity`` (their optimiser state zeroed), so that Gaussians the views do not need fade and
     are pruned. ``max_count`` caps the Gaussians: growth that would pass it is dropped, the largest gradients kept.
 
+    With ``absgrad`` (AbsGS, Ye et al. 2024; gsplat's ``absgrad``), the gradient a Gaussian grows by is the sum over
+    its pixels of the absolute value of each pixel's pull on its centre, not the norm of their sum. Over fine detail
+    (a row of dots, a weave) the pixels pull a large Gaussian in opposite directions, the pulls cancel and the
+    Gaussian is never split, so the detail stays blurred; their absolute values do not cancel. The sums are larger,
+    so the threshold is too: gsplat pairs absgrad with four times its ``grow_grad2d``.
+
     With ``prune_near_cameras`` (a fraction of the scene scale), each refinement also prunes the Gaussians within
     that distance of a training camera's centre whose centre fewer than ``near_cameras_min_views`` training views
     see. Such a Gaussian fills the near field of a camera or two: the views that see it can explain it as anything,
@@ -68,12 +80,13 @@ class DefaultStrategy:
     def __init__(self, refine_start: int = 500, refine_stop: int = 15_000, refine_every: int = 100, reset_every: int = 3000,
                  grow_grad2d: float = 2e-4, grow_scale3d: float = 0.01, prune_opacity: float = 0.005, prune_scale3d: float = 0.1,
                  max_count: int = 1_000_000, prune_large_after: int | None = None, prune_near_cameras: float | None = None,
-                 near_cameras_min_views: int = 5, seed: int = 0) -> None:
+                 near_cameras_min_views: int = 5, seed: int = 0, absgrad: bool = False) -> None:
         self.refine_start, self.refine_stop, self.refine_every, self.reset_every = refine_start, refine_stop, refine_every, reset_every
         self.grow_grad2d, self.grow_scale3d = grow_grad2d, grow_scale3d
         self.prune_opacity, self.prune_scale3d, self.max_count = prune_opacity, prune_scale3d, max_count
         self.prune_large_after = reset_every if prune_large_after is None else prune_large_after
         self.prune_near_cameras, self.near_cameras_min_views = prune_near_cameras, near_cameras_min_views
+        self.absgrad = absgrad
         self.scene_scale = 1.0
         self.cameras: tuple[torch.Tensor, torch.Tensor, int, int] | None = None
         self.generator = torch.Generator().manual_seed(seed)
@@ -84,6 +97,11 @@ class DefaultStrategy:
         grad = projection.means2d.grad
         if grad is None:
             return
+        if self.absgrad:
+            grad = getattr(projection.means2d, "absgrad", None)
+            if grad is None:
+                raise RuntimeError("model.strategy.absgrad needs the rasteriser's absolute screen-space gradients, and "
+                                   "this view was drawn without them (rasterize_view(..., absgrad=True) keeps them)")
         n = len(gaussians)
         if self.grad_sum is None or self.grad_sum.shape[0] != n or self.grad_sum.device != grad.device:
             self.grad_sum, self.seen = grad.new_zeros(n), grad.new_zeros(n)
@@ -190,6 +208,7 @@ class MCMCStrategy:
 
     # the noise's opacity gate sigmoid(-k (o - t)) (gsplat's op_sigmoid): about 1 under t, about 0 a few 1 / k above
     NOISE_K, NOISE_T = 100.0, 0.005
+    absgrad = False  # it reads no screen-space statistics
 
     def __init__(self, cap_max: int = 1_000_000, noise_lr: float = 5e5, refine_start: int = 500, refine_stop: int = 25_000,
                  refine_every: int = 100, min_opacity: float = 0.005, grow_rate: float = 1.05, opacity_reg: float = 0.01,

@@ -42,16 +42,18 @@ def gaussians(n: int = 60, seed: int = 0) -> dict[str, torch.Tensor]:
 
 
 def draw(g: dict[str, torch.Tensor], rasteriser, antialiased: bool = False, **options) -> dict[str, torch.Tensor]:
+    """The view ``rasteriser`` draws, with its footprints' ``means2d`` (whose ``absgrad`` the backward pass fills)."""
     K, c2w = camera()
     projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K, c2w, HEIGHT, WIDTH, antialiased)
-    return rasteriser(projection, g["colours"][projection.ids], HEIGHT, WIDTH, torch.tensor([0.2, 0.4, 0.9]), **options)
+    out = rasteriser(projection, g["colours"][projection.ids], HEIGHT, WIDTH, torch.tensor([0.2, 0.4, 0.9]), **options)
+    return {**out, "means2d": projection.means2d}
 
 
 @pytest.mark.parametrize("antialiased", [False, True])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_rasteriser_equals_the_dense_reference_in_values_and_gradients(seed, antialiased):
     g = gaussians(seed=seed)
-    fast, dense = draw(g, rasterize, antialiased), draw(g, rasterize_dense, antialiased)
+    fast, dense = draw(g, rasterize, antialiased, absgrad=True), draw(g, rasterize_dense, antialiased, absgrad=True)
     for key in ("rgb", "accumulation"):
         torch.testing.assert_close(fast[key], dense[key], atol=1e-5, rtol=1e-5)
     drawn = dense["accumulation"] > 1e-3
@@ -67,6 +69,9 @@ def test_the_rasteriser_equals_the_dense_reference_in_values_and_gradients(seed,
     for name, a, b in zip(g, gradients(fast), gradients(dense)):
         assert a.abs().max() > 0 or name == "opacity_logits" and b.abs().max() == 0, name
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4, msg=f"gradient with respect to {name}")
+    # AbsGS's statistic: each pixel's pull on a footprint's centre, summed as absolute values
+    torch.testing.assert_close(fast["means2d"].absgrad, dense["means2d"].absgrad, atol=1e-5, rtol=1e-4)
+    assert dense["means2d"].absgrad.max() > 0
 
 
 def test_the_pairs_are_the_pixels_the_reference_draws():
@@ -89,9 +94,12 @@ def test_the_pairs_are_the_pixels_the_reference_draws():
 
 def test_bands_within_a_pair_budget_draw_the_same_image():
     g = gaussians(seed=4)
-    whole, banded = draw(g, rasterize), draw(g, rasterize, max_pairs=300)
-    for key in whole:
+    whole, banded = draw(g, rasterize, absgrad=True), draw(g, rasterize, max_pairs=300, absgrad=True)
+    for key in ("rgb", "depth", "accumulation"):
         torch.testing.assert_close(whole[key], banded[key], atol=1e-6, rtol=1e-6)
+    for out in (whole, banded):
+        out["rgb"].square().sum().backward()
+    torch.testing.assert_close(whole["means2d"].absgrad, banded["means2d"].absgrad, atol=1e-6, rtol=1e-5)
     K, c2w = camera()
     with torch.no_grad():
         projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K, c2w, HEIGHT, WIDTH)

@@ -25,13 +25,15 @@ TRITON_DEVICE = "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def rasterize_triton_here(projection: Projection, colours: torch.Tensor, height: int, width: int,
-                          background: torch.Tensor) -> dict[str, torch.Tensor]:
+                          background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """rasterize_triton on :data:`TRITON_DEVICE`, its outputs brought back to the CPU (differentiably: the gradients
     reach the CPU's leaves)."""
     from nerf_lightning.splats.rasterize_triton import rasterize_triton
 
-    out = rasterize_triton(Projection(*(value.to(TRITON_DEVICE) for value in projection)), colours.to(TRITON_DEVICE),
-                           height, width, background.to(TRITON_DEVICE))
+    moved = Projection(*(value.to(TRITON_DEVICE) for value in projection))
+    out = rasterize_triton(moved, colours.to(TRITON_DEVICE), height, width, background.to(TRITON_DEVICE), absgrad)
+    if moved.means2d is not projection.means2d and hasattr(moved.means2d, "absgrad"):
+        projection.means2d.absgrad = moved.means2d.absgrad  # on the GPU, where the backward pass fills it
     return {key: value.cpu() for key, value in out.items()}
 
 
@@ -44,19 +46,22 @@ TILE_RASTERISERS = [
 
 
 def drawn(g: dict[str, torch.Tensor], rasteriser, height: int, width: int, antialiased: bool = False,
-          K: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+          K: torch.Tensor | None = None, **options) -> dict[str, torch.Tensor]:
+    """The view ``rasteriser`` draws, with its footprints' ``means2d`` (whose ``absgrad`` the backward pass fills)."""
     K0, c2w = camera(height, width)
     projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]),
                          K0 if K is None else K, c2w, height, width, antialiased)
-    return rasteriser(projection, g["colours"][projection.ids], height, width, BACKGROUND)
+    return {**rasteriser(projection, g["colours"][projection.ids], height, width, BACKGROUND, **options),
+            "means2d": projection.means2d}
 
 
 def assert_equal_to_dense(g: dict[str, torch.Tensor], height: int, width: int, antialiased: bool = False,
                           mask: torch.Tensor | None = None, K: torch.Tensor | None = None,
                           rasteriser=rasterize_tiles) -> dict[str, torch.Tensor]:
-    """Values and the gradients of one loss over rgb, accumulation and depth, ``rasteriser`` (the tiles) against
-    dense, to 1e-5."""
-    tiles, dense = drawn(g, rasteriser, height, width, antialiased, K), drawn(g, rasterize_dense, height, width, antialiased, K)
+    """Values and the gradients of one loss over rgb, accumulation and depth, and the footprints' absolute
+    screen-space gradients (``means2d.absgrad``), ``rasteriser`` (the tiles) against dense, to 1e-5."""
+    tiles = drawn(g, rasteriser, height, width, antialiased, K, absgrad=True)
+    dense = drawn(g, rasterize_dense, height, width, antialiased, K, absgrad=True)
     for key in ("rgb", "accumulation"):
         torch.testing.assert_close(tiles[key], dense[key], atol=1e-5, rtol=1e-5)
     covered = dense["accumulation"] > 1e-3
@@ -71,6 +76,8 @@ def assert_equal_to_dense(g: dict[str, torch.Tensor], height: int, width: int, a
 
     for name, a, b in zip(g, gradients(tiles), gradients(dense)):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4, msg=f"gradient with respect to {name}")
+    torch.testing.assert_close(tiles["means2d"].absgrad.cpu(), dense["means2d"].absgrad, atol=1e-5, rtol=1e-4)
+    assert dense["means2d"].absgrad.max() > 0
     return tiles
 
 
@@ -121,10 +128,10 @@ def assert_projection_gradients_equal(projection: Projection, colours: torch.Ten
                                       rasteriser=rasterize_tiles) -> dict:
     out = {}
     for name, rasteriser in (("tiles", rasteriser), ("dense", rasterize_dense)):
-        drawn_out = rasteriser(projection, colours, height, width, BACKGROUND)
+        drawn_out = rasteriser(projection, colours, height, width, BACKGROUND, absgrad=True)
         loss = drawn_out["rgb"].sum() + 0.5 * drawn_out["accumulation"].sum() + 0.1 * drawn_out["depth"].sum()
         inputs = [projection.means2d, projection.conics, projection.opacities, projection.depths, colours]
-        out[name] = (drawn_out, torch.autograd.grad(loss, inputs))
+        out[name] = (drawn_out, (*torch.autograd.grad(loss, inputs), projection.means2d.absgrad.cpu()))
     for key in ("rgb", "accumulation", "depth"):
         torch.testing.assert_close(out["tiles"][0][key], out["dense"][0][key], atol=1e-5, rtol=1e-5)
     for a, b in zip(out["tiles"][1], out["dense"][1]):

@@ -249,3 +249,51 @@ def test_pruning_near_cameras_without_the_cameras_is_one_clear_error():
                                           torch.zeros(3, 2)), width=64, height=64)
     with pytest.raises(ValueError, match="prune_near_cameras needs the training cameras"):
         strategy.after_step(g, step=100, replace=replace, means_lr=0.0)
+
+
+def symmetric_footprint() -> Projection:
+    """One round footprint in the middle of a 24 x 20 view, every pixel of which it covers: by symmetry, the pixels'
+    pulls on its centre cancel under a loss that treats them all alike."""
+    means2d = torch.tensor([[12.0, 10.0]], requires_grad=True)
+    conics = torch.tensor([[0.05, 0.0, 0.05]])
+    return Projection(torch.arange(1), means2d, conics, torch.tensor([0.8]), torch.tensor([1.0]), torch.full((1, 2), 20.0))
+
+
+@pytest.mark.parametrize("rasteriser", ["pairs", "tiles"])
+def test_absgrad_grows_a_gaussian_whose_pixels_pull_its_centre_in_opposite_ways(rasteriser):
+    from nerf_lightning.splats.rasterizers import rasterize_view
+
+    stats = {}
+    for absgrad in (False, True):
+        g = gaussians_for(1)
+        with torch.no_grad():
+            g.log_scales[:] = math.log(0.001)  # small: it grows by a clone
+            g.opacity_logits[:] = 2.0
+        optimizer, replace = stepped_optimizer(g)
+        projection = symmetric_footprint()
+        out = rasterize_view(projection, torch.tensor([[0.9, 0.5, 0.1]]), 20, 24, torch.zeros(3), rasteriser, absgrad=True)
+        out["rgb"].sum().backward()  # too bright everywhere, alike: each pixel pulls the centre towards itself
+        stats[absgrad] = (projection.means2d.grad.norm(), projection.means2d.absgrad.norm())
+        net, total = stats[absgrad]
+        assert net < 1e-3 * total  # the pulls cancel; their absolute values do not
+        strategy = DefaultStrategy(refine_start=0, refine_every=100, grow_grad2d=float((net * total).sqrt() * 12), absgrad=absgrad)
+        strategy.after_backward(g, projection, width=24, height=20)
+        strategy.after_step(g, step=100, replace=replace, means_lr=0.0)
+        assert len(g) == (2 if absgrad else 1), absgrad
+
+
+def test_absgrad_from_a_view_drawn_without_it_is_one_clear_error():
+    g = gaussians_for(1)
+    projection = symmetric_footprint()
+    projection.means2d.grad = torch.ones(1, 2)  # a gradient, as if drawn without absgrad=True
+    with pytest.raises(RuntimeError, match="model.strategy.absgrad needs"):
+        DefaultStrategy(absgrad=True).after_backward(g, projection, width=24, height=20)
+
+
+def test_a_short_run_with_absgrad_grows_its_gaussians_by_it(make_config, scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    cfg = make_config(*QUICK, "trainer.max_steps=120", "data.val_every=120", "model.strategy.refine_start=40",
+                      "model.strategy.refine_every=40", "model.strategy.refine_stop=100", "model.strategy.absgrad=true",
+                      "model.strategy.grow_grad2d=8.0e-4")
+    metrics = train(cfg)  # the model asked the rasteriser for absgrad: without it, after_backward would raise
+    assert metrics["step"] == 120 and metrics["train/gaussians"] > 3000, metrics

@@ -376,7 +376,7 @@ class TileRasterize(torch.autograd.Function):
         sum_slots(order, slot_offsets, slots, slot_grads, grads)
         grads = torch.from_numpy(grads.astype(dtype))
         if ctx.absgrad is not None:
-            ctx.absgrad.copy_(grads[:, 10:12])
+            ctx.absgrad.add_(grads[:, 10:12])  # added, as the gradients are, should the graph be walked again
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:10], None, None, None, None
 
 

@@ -304,7 +304,7 @@ class TritonRasterize(torch.autograd.Function):
                                                            BLOCK=SUM_BLOCK, GRADIENTS=GRADIENTS)
         grads = torch.empty_like(drawn_order).index_copy_(0, order, drawn_order)  # back to the footprints' order
         if ctx.absgrad is not None:
-            ctx.absgrad.copy_(grads[:, 10:12])
+            ctx.absgrad.add_(grads[:, 10:12])  # added, as the gradients are, should the graph be walked again
         return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:10], None, None, None, None
 
 

@@ -270,3 +270,15 @@ def test_the_fall_off_is_exp_where_the_loops_ask_it() -> None:
     np.testing.assert_allclose(fades, np.exp(-sigmas[::97]), rtol=1e-8, atol=0.0)
     # past the table (an opacity over 1 given to TileRasterize) it stays on it; a NaN sigma gives NaN, as exp does
     assert 0.0 <= fade(100.0) < 1e-3 and np.isnan(fade(float("nan")))
+
+
+@pytest.mark.parametrize("rasteriser", [rasterize_tiles, rasterize], ids=["numba", "pairs"])
+def test_absgrad_adds_up_over_backward_passes_as_gradients_do(rasteriser):
+    g = gaussians(seed=11)
+    out = drawn(g, rasteriser, 20, 24, absgrad=True)
+    loss = out["rgb"].square().sum()
+    loss.backward(retain_graph=True)
+    once = out["means2d"].absgrad.clone()
+    loss.backward()
+    assert once.max() > 0
+    torch.testing.assert_close(out["means2d"].absgrad, 2 * once)

@@ -252,8 +252,8 @@ def test_pruning_near_cameras_without_the_cameras_is_one_clear_error():
 
 
 def symmetric_footprint() -> Projection:
-    """One round footprint in the middle of a 24 x 20 view, every pixel of which it covers: by symmetry, the pixels'
-    pulls on its centre cancel under a loss that treats them all alike."""
+    """One round footprint in the middle of a 24 x 20 view, drawn symmetrically about its centre: by symmetry, the
+    pixels' pulls on its centre cancel under a loss that treats them all alike."""
     means2d = torch.tensor([[12.0, 10.0]], requires_grad=True)
     conics = torch.tensor([[0.05, 0.0, 0.05]])
     return Projection(torch.arange(1), means2d, conics, torch.tensor([0.8]), torch.tensor([1.0]), torch.full((1, 2), 20.0))

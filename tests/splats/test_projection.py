@@ -323,9 +323,10 @@ VIEW_C2W = c2w_of(VIEW_ROTATION, VIEW_CENTRE).float()
 
 
 def splat_model(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, opacities: torch.Tensor,
-                colours: torch.Tensor, rasterizer: str) -> SplatModule:
-    """A SplatModule (L1 loss alone, DefaultStrategy, the given rasteriser) holding these Gaussians, not attached to a
-    Trainer: ``training_step`` and ``on_after_backward`` are called as Lightning calls them."""
+                colours: torch.Tensor, rasterizer: str, absgrad: bool = False) -> SplatModule:
+    """A SplatModule (L1 loss alone, DefaultStrategy growing by the plain or the absolute screen gradient, the given
+    rasteriser) holding these Gaussians, not attached to a Trainer: ``training_step`` and ``on_after_backward`` are
+    called as Lightning calls them."""
     gaussians = Gaussians(sh_degree=0)
     values = {"means": means, "quats": quats, "log_scales": log_scales,
               "opacity_logits": torch.log(opacities / (1 - opacities)), "sh0": rgb_to_sh(colours)[:, None],
@@ -333,7 +334,7 @@ def splat_model(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tens
     for name in PARAMETERS:
         setattr(gaussians, name, nn.Parameter(values[name].float().clone()))
     model = SplatModule(gaussians, optimizer=functools.partial(torch.optim.Adam), learning_rates=dict.fromkeys(PARAMETERS, 1e-3),
-                        strategy=DefaultStrategy(), ssim_weight=0.0, rasterizer=rasterizer)
+                        strategy=DefaultStrategy(absgrad=absgrad), ssim_weight=0.0, rasterizer=rasterizer)
     assert choose_rasterizer("cpu", rasterizer) == rasterizer, f"the {rasterizer} rasteriser is not what draws here"
     model.use_space(SceneSpace(background=(0.05, 0.1, 0.15)))
     model.view_size = (VIEW_H, VIEW_W)
@@ -364,17 +365,19 @@ def step(model: SplatModule, image: torch.Tensor, K_: torch.Tensor) -> None:
     model.on_after_backward()
 
 
+@pytest.mark.parametrize("absgrad", [False, True], ids=["plain", "absgrad"])
 @pytest.mark.parametrize("rasterizer", ["pairs", "tiles"])
-def test_a_patch_gives_the_strategy_the_screen_gradient_the_whole_view_would(rasterizer):
+def test_a_patch_gives_the_strategy_the_screen_gradient_the_whole_view_would(rasterizer, absgrad):
     """A whole view, and a patch of it (its camera from ``patch_camera``), with a target equal to the render outside
     the patch and off it by +-0.1 inside: the whole view's L1 (a mean over its pixels) then has the patch's per-pixel
     loss terms and no others, so its gradient is the patch's L1 gradient times patch pixels / view pixels, exactly
     (bar float rounding). (An L1 alone: SSIM's windows reach across the patch's border.) ``on_after_backward``
     applies that share to the patch's means2d gradient, so the strategy accumulates the same norms, in units of half
-    the whole view, from either."""
+    the whole view, from either. With ``absgrad`` (AbsGS) the same holds of the absolute screen gradient the strategy
+    then reads: the pixels off the patch pull on nothing (an L1 at zero error has a zero gradient)."""
     s = patch_scene()
-    whole, patch = (splat_model(*(s[key] for key in ("means", "quats", "log_scales", "opacities", "colours")), rasterizer)
-                    for _ in range(2))
+    whole, patch = (splat_model(*(s[key] for key in ("means", "quats", "log_scales", "opacities", "colours")), rasterizer,
+                                absgrad) for _ in range(2))
     with torch.no_grad():
         rendered, projection = whole.draw(VIEW_K, VIEW_C2W, VIEW_H, VIEW_W)
     assert len(projection.ids) == 5
@@ -396,8 +399,15 @@ def test_a_patch_gives_the_strategy_the_screen_gradient_the_whole_view_would(ras
     grad = whole_projection.means2d.grad
     assert grad.norm(dim=-1).min() > 1e-5
     torch.testing.assert_close(patch_projection.means2d.grad, grad, rtol=1e-4, atol=1e-9)
+    read = grad
+    if absgrad:  # the absolute gradient, kept by the rasteriser and scaled by the share as the plain one is
+        read = whole_projection.means2d.absgrad
+        assert (read.norm(dim=-1) > grad.norm(dim=-1) * 1.01).all()  # the pixels' pulls do not all point one way
+        torch.testing.assert_close(patch_projection.means2d.absgrad, read, rtol=1e-4, atol=1e-9)
+    else:
+        assert getattr(whole_projection.means2d, "absgrad", None) is None  # not asked for, not kept
     # the strategy's norms, in units of half the whole view, the same from either
-    torch.testing.assert_close(whole.strategy.grad_sum, (grad * torch.tensor([VIEW_W / 2, VIEW_H / 2])).norm(dim=-1))
+    torch.testing.assert_close(whole.strategy.grad_sum, (read * torch.tensor([VIEW_W / 2, VIEW_H / 2])).norm(dim=-1))
     torch.testing.assert_close(patch.strategy.grad_sum, whole.strategy.grad_sum, rtol=1e-4, atol=1e-9)
     assert patch.strategy.seen.tolist() == whole.strategy.seen.tolist() == [1.0] * 5
 

@@ -45,6 +45,7 @@ class ViewBatch(TypedDict, total=False):
     width: int
     object_mask: torch.Tensor  # (h, w) bool, data.masks=background
     loss_mask: torch.Tensor  # (h, w) bool, data.masks=exclude
+    scale: int  # a coarse view's downscale (data.coarse_scale); absent: full resolution
 
 
 class HeldOutView(TypedDict, total=False):

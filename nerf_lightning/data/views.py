@@ -9,6 +9,7 @@ import torch
 
 from nerf_lightning.data.batches import HeldOutView, ViewBatch
 from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.data.images import downscale, downscale_mask
 from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.data.scene_data import SceneDataModule
@@ -38,17 +39,29 @@ class ViewDataModule(SceneDataModule):
     :meth:`~nerf_lightning.data.scene_data.SceneDataModule.cameras_and_images`), else cut on the host.
     Validation batch: :func:`~nerf_lightning.data.scene_data.view_batch` of one held-out view.
 
+    Coarse views first (``coarse_scale`` > 1): for the first ``coarse_steps`` steps each batch is the whole view,
+    area-averaged by ``coarse_scale`` (its image, mask and ``K``), with ``scale`` = ``coarse_scale`` in the batch;
+    ``patch_size`` patches at full resolution after. A step then covers the whole object at a fraction of a full
+    view's pixels, while what it learns first (colour, shape) needs no fine detail (DashGaussian's resolution schedule,
+    in one step down). Decided by the trainer's step as the batch reaches the device, so a resumed run draws the same.
+
     Args:
         patch_size: the side of a random square patch in pixels; None for the whole view.
+        coarse_scale: the whole views' downscale for the first ``coarse_steps`` steps (1: none).
+        coarse_steps: steps trained on coarse views.
         scene, root, val_views, val_split, render_path, render_frames, ndc, contract, masks, val_steps, val_every, seed:
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
-    def __init__(self, scene: Callable[..., Scene], root: str | None = None, patch_size: int | None = None, **options: Any) -> None:
+    def __init__(self, scene: Callable[..., Scene], root: str | None = None, patch_size: int | None = None,
+                 coarse_scale: int = 1, coarse_steps: int = 0, **options: Any) -> None:
         super().__init__(scene, root, batch_size=1, **options)
         if patch_size is not None and patch_size < 1:
             raise ValueError(f"data.patch_size must be >= 1 or null (whole views), got {patch_size}")
+        if int(coarse_scale) != coarse_scale or coarse_scale < 1 or coarse_steps < 0:
+            raise ValueError(f"data.coarse_scale must be a whole number >= 1 and data.coarse_steps >= 0, got {coarse_scale} and {coarse_steps}")
         self.patch_size = patch_size
+        self.coarse_scale, self.coarse_steps = int(coarse_scale), int(coarse_steps)
 
     def setup(self, stage: str | None = None) -> None:
         super().setup(stage)
@@ -56,6 +69,14 @@ class ViewDataModule(SceneDataModule):
         if self.patch_size is not None and self.patch_size > min(train.height, train.width):
             raise ValueError(f"data.patch_size={self.patch_size} does not fit the {train.width}x{train.height} training views "
                              f"of {self.scene.source or 'the scene'}: at most {min(train.height, train.width)}, or null for whole views")
+        if self.coarse_steps > 0 and self.coarse_scale > min(train.height, train.width):
+            raise ValueError(f"data.coarse_scale={self.coarse_scale} is larger than the {train.width}x{train.height} training views "
+                             f"of {self.scene.source or 'the scene'}")
+
+    def scale_now(self) -> int:
+        """The training views' downscale at the trainer's current step: ``coarse_scale`` for the first
+        ``coarse_steps`` steps, else 1."""
+        return self.coarse_scale if self._steps_done() < self.coarse_steps else 1
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """``camera_index`` () a training view drawn uniformly and ``offset`` (2,) the column and row of a
@@ -82,6 +103,9 @@ class ViewDataModule(SceneDataModule):
         train = self.scene.train
         height, width = (train.height, train.width) if self.patch_size is None else (self.patch_size, self.patch_size)
         view, x0, y0 = batch["crop"]
+        scale = self.scale_now()
+        if scale > 1:  # the whole view, averaged below
+            height, width, x0, y0, offset = train.height, train.width, 0, 0, torch.zeros_like(offset)
         if images is None:  # too large for the device: cut on the host, move the patch alone
             image = train.images[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
         else:
@@ -95,4 +119,20 @@ class ViewDataModule(SceneDataModule):
                 drawn["object_mask"] = mask
             else:  # exclude: the model's loss covers the masked pixels alone
                 drawn["loss_mask"] = mask
+        if scale > 1:
+            drawn = coarse_view(drawn, scale)
         return drawn
+
+
+def coarse_view(drawn: ViewBatch, scale: int) -> ViewBatch:
+    """A whole view's batch area-averaged by ``scale``: its image (the object over the background already, with
+    ``background`` masks), its masks (a pixel the object where half its block is) and its camera, whose focal lengths
+    and principal point shrink with the pixels (the pixel centres' convention keeps the average exact)."""
+    K = drawn["K"].clone()
+    K[..., :2, :] = K[..., :2, :] / scale
+    coarse: ViewBatch = {**drawn, "image": downscale(drawn["image"], scale), "K": K, "scale": scale}
+    for key in ("object_mask", "loss_mask"):
+        if key in drawn:
+            coarse[key] = downscale_mask(drawn[key], scale)
+    coarse["height"], coarse["width"] = coarse["image"].shape[:2]
+    return coarse

@@ -47,6 +47,34 @@ def test_a_patch_is_cut_with_its_camera_whose_rays_are_the_views_rays_at_those_p
     assert len(offsets) > 1
 
 
+def test_coarse_views_first_are_whole_views_averaged_with_their_cameras_then_patches(procedural_scene, monkeypatch):
+    """data.coarse_scale / coarse_steps: before coarse_steps the whole view area-averaged by the scale, its camera's
+    rays through the coarse pixels' centres those of the full view's pixel blocks' centres; from coarse_steps on,
+    full-resolution patches as before."""
+    data = views_of(procedural_scene, patch_size=24, coarse_scale=4, coarse_steps=3)
+    train = procedural_scene.train
+    drawn = next(iter(data.train_dataloader()))
+    view = int(drawn["camera_index"])
+    for step, expected in ((0, 4), (2, 4), (3, 1), (50, 1)):
+        monkeypatch.setattr(data, "_steps_done", lambda step=step: step)
+        assert data.scale_now() == expected
+        batch = data.on_after_batch_transfer(dict(drawn), 0)
+        if expected == 1:  # a full-resolution patch
+            assert batch["image"].shape == (24, 24, 3) and "scale" not in batch
+            continue
+        assert batch["scale"] == 4 and batch["image"].shape == (25, 25, 3) and (batch["height"], batch["width"]) == (25, 25)
+        assert batch["offset"].tolist() == [0, 0]
+        full = train.images[view].float() / 255
+        torch.testing.assert_close(batch["image"], full.reshape(25, 4, 25, 4, 3).mean(dim=(1, 3)))
+        coarse_o, coarse_d = image_rays(batch["K"][None], batch["c2w"][None], 25, 25)
+        # the full view's rays through the blocks' centres: the corner pixels' (1.5, 1.5) of each 4x4 block
+        K = train.K[view].clone()
+        K[:2, 2] -= 1.5  # a 100x100 view's pixel (4i + 1.5 + 0.5) is (4i + 2), a coarse pixel (i + 0.5) scaled by 4
+        full_o, full_d = image_rays(K[None], train.c2w[view : view + 1], 100, 100)
+        torch.testing.assert_close(coarse_d.reshape(25, 25, 3), full_d.reshape(100, 100, 3)[::4, ::4], atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(coarse_o.reshape(25, 25, 3), full_o.reshape(100, 100, 3)[::4, ::4])
+
+
 def test_draws_are_the_steps_own_so_a_resumed_run_draws_the_same(procedural_scene):
     data, again = views_of(procedural_scene, patch_size=16), views_of(procedural_scene, patch_size=16)
     first = list(iter(data.train_dataloader()))[:40]
@@ -67,6 +95,10 @@ def test_a_patch_larger_than_the_views_and_a_missing_root_are_refused(procedural
         views_of(procedural_scene, patch_size=101)
     with pytest.raises(ValueError, match="data.patch_size must be >= 1"):
         ViewDataModule(scene=lambda: procedural_scene, patch_size=0)
+    with pytest.raises(ValueError, match="data.coarse_scale must be a whole number >= 1"):
+        ViewDataModule(scene=lambda: procedural_scene, coarse_scale=1.5, coarse_steps=10)
+    with pytest.raises(ValueError, match=r"data.coarse_scale=101 is larger than the 100x100 training views"):
+        views_of(procedural_scene, coarse_scale=101, coarse_steps=10)
 
     def load_files(root):
         return procedural_scene

@@ -412,6 +412,22 @@ def test_a_patch_gives_the_strategy_the_screen_gradient_the_whole_view_would(ras
     assert patch.strategy.seen.tolist() == whole.strategy.seen.tolist() == [1.0] * 5
 
 
+def test_a_coarse_view_is_a_whole_view_to_the_strategy():
+    """A batch of a whole view averaged by ``scale`` (data.coarse_scale) gives the strategy its own size and a share of
+    1, not the full views' size, against which it would look like a quarter of a view."""
+    s = patch_scene()
+    model = splat_model(*(s[key] for key in ("means", "quats", "log_scales", "opacities", "colours")), "tiles")
+    model.view_size = (VIEW_H * 2, VIEW_W * 2)  # the training views at full resolution; this batch came averaged by 2
+    with torch.no_grad():
+        rendered, _ = model.draw(VIEW_K, VIEW_C2W, VIEW_H, VIEW_W)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*self.log.*")
+        model.training_step({"image": rendered["rgb"] + 0.05, "K": VIEW_K, "c2w": VIEW_C2W, "scale": 2}, 0)
+        assert model._drawn[1:] == (VIEW_W, VIEW_H, 1.0)
+        model.training_step({"image": rendered["rgb"][:PATCH, :PATCH], "K": VIEW_K, "c2w": VIEW_C2W}, 0)  # full resolution
+    assert model._drawn[1:] == (VIEW_W * 2, VIEW_H * 2, pytest.approx(PATCH * PATCH / (VIEW_H * VIEW_W * 4)))
+
+
 # -- 7. the depth's scaling ----------------------------------------------------------------------------------------
 
 

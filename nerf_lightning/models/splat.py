@@ -329,9 +329,8 @@ class SplatModule(SceneModule):
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
         # the strategy reads gradients as of a whole view: a patch's loss, a mean over fewer pixels, gives each of its
         # Gaussians (whole view / patch) times the gradient the whole view would, and would grow far too many
-        full_height, full_width = self.view_size or (height, width)
         scale = int(batch.get("scale", 1))  # a coarse view (data.coarse_scale): whole, at its own size
-        full_height, full_width = full_height // scale, full_width // scale
+        full_height, full_width = (self.view_size[0] // scale, self.view_size[1] // scale) if self.view_size else (height, width)
         self._drawn = (projection, full_width, full_height, height * width / (full_height * full_width))
         rgb = out["rgb"]
         if self.appearance is not None and camera_index is not None:  # the view's colour transform, the background as it is

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -42,26 +42,27 @@ class ViewDataModule(SceneDataModule):
     Coarse views first (``coarse_scale`` > 1): for the first ``coarse_steps`` steps each batch is the whole view,
     area-averaged by ``coarse_scale`` (its image, mask and ``K``), with ``scale`` = ``coarse_scale`` in the batch;
     ``patch_size`` patches at full resolution after. A step then covers the whole object at a fraction of a full
-    view's pixels, while what it learns first (colour, shape) needs no fine detail (DashGaussian's resolution schedule,
-    in one step down). Decided by the trainer's step as the batch reaches the device, so a resumed run draws the same.
+    view's pixels, while what it learns first (colour, shape) needs no fine detail (DashGaussian's resolution
+    schedule). Several steps down are lists: ``coarse_scale=[4, 2]``, ``coarse_steps=[500, 1500]`` averages by 4 until
+    step 500, by 2 until step 1500. Decided by the trainer's step as the batch reaches the device, so a resumed run
+    draws the same.
 
     Args:
         patch_size: the side of a random square patch in pixels; None for the whole view.
-        coarse_scale: the whole views' downscale for the first ``coarse_steps`` steps (1: none).
-        coarse_steps: steps trained on coarse views.
+        coarse_scale: the whole views' downscale for the first ``coarse_steps`` steps (1: none), or a list of them,
+            largest first.
+        coarse_steps: the step until which coarse views are trained, or a list of them, one a scale, growing.
         scene, root, val_views, val_split, render_path, render_frames, ndc, contract, masks, val_steps, val_every, seed:
             see :class:`~nerf_lightning.data.scene_data.SceneDataModule`.
     """
 
     def __init__(self, scene: Callable[..., Scene], root: str | None = None, patch_size: int | None = None,
-                 coarse_scale: int = 1, coarse_steps: int = 0, **options: Any) -> None:
+                 coarse_scale: int | Sequence[int] = 1, coarse_steps: int | Sequence[int] = 0, **options: Any) -> None:
         super().__init__(scene, root, batch_size=1, **options)
         if patch_size is not None and patch_size < 1:
             raise ValueError(f"data.patch_size must be >= 1 or null (whole views), got {patch_size}")
-        if int(coarse_scale) != coarse_scale or coarse_scale < 1 or coarse_steps < 0:
-            raise ValueError(f"data.coarse_scale must be a whole number >= 1 and data.coarse_steps >= 0, got {coarse_scale} and {coarse_steps}")
         self.patch_size = patch_size
-        self.coarse_scale, self.coarse_steps = int(coarse_scale), int(coarse_steps)
+        self.coarse_schedule = coarse_schedule(coarse_scale, coarse_steps)
 
     def setup(self, stage: str | None = None) -> None:
         super().setup(stage)
@@ -69,14 +70,16 @@ class ViewDataModule(SceneDataModule):
         if self.patch_size is not None and self.patch_size > min(train.height, train.width):
             raise ValueError(f"data.patch_size={self.patch_size} does not fit the {train.width}x{train.height} training views "
                              f"of {self.scene.source or 'the scene'}: at most {min(train.height, train.width)}, or null for whole views")
-        if self.coarse_steps > 0 and self.coarse_scale > min(train.height, train.width):
-            raise ValueError(f"data.coarse_scale={self.coarse_scale} is larger than the {train.width}x{train.height} training views "
-                             f"of {self.scene.source or 'the scene'}")
+        for scale, steps in self.coarse_schedule:
+            if steps > 0 and scale > min(train.height, train.width):
+                raise ValueError(f"data.coarse_scale={scale} is larger than the {train.width}x{train.height} training views "
+                                 f"of {self.scene.source or 'the scene'}")
 
     def scale_now(self) -> int:
-        """The training views' downscale at the trainer's current step: ``coarse_scale`` for the first
-        ``coarse_steps`` steps, else 1."""
-        return self.coarse_scale if self._steps_done() < self.coarse_steps else 1
+        """The training views' downscale at the trainer's current step: the first scale of the coarse schedule whose
+        step it has not reached, else 1."""
+        done = self._steps_done()
+        return next((scale for scale, until in self.coarse_schedule if done < until), 1)
 
     def draw_batch(self, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """``camera_index`` () a training view drawn uniformly and ``offset`` (2,) the column and row of a
@@ -122,6 +125,21 @@ class ViewDataModule(SceneDataModule):
         if scale > 1:
             drawn = coarse_view(drawn, scale)
         return drawn
+
+
+def coarse_schedule(coarse_scale: int | Sequence[int], coarse_steps: int | Sequence[int]) -> list[tuple[int, int]]:
+    """``data.coarse_scale`` and ``data.coarse_steps`` (a number each, or lists of one length) -> [(scale, until
+    step)], checked: whole scales >= 1, largest first, and the steps they end at >= 0 and growing."""
+    scales = list(coarse_scale) if isinstance(coarse_scale, Sequence) else [coarse_scale]
+    steps = list(coarse_steps) if isinstance(coarse_steps, Sequence) else [coarse_steps]
+    if len(scales) != len(steps):
+        raise ValueError(f"data.coarse_scale and data.coarse_steps must have one step a scale, got {scales} and {steps}")
+    if any(not isinstance(scale, (int, float)) or int(scale) != scale or scale < 1 for scale in scales) \
+            or any(not isinstance(step, (int, float)) or int(step) != step or step < 0 for step in steps):
+        raise ValueError(f"data.coarse_scale must be whole numbers >= 1 and data.coarse_steps whole numbers >= 0, got {scales} and {steps}")
+    if scales != sorted(scales, reverse=True) or steps != sorted(steps):
+        raise ValueError(f"data.coarse_scale must go down (coarsest first) and data.coarse_steps up, got {scales} and {steps}")
+    return [(int(scale), int(step)) for scale, step in zip(scales, steps)]
 
 
 def coarse_view(drawn: ViewBatch, scale: int) -> ViewBatch:

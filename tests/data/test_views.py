@@ -75,6 +75,28 @@ def test_coarse_views_first_are_whole_views_averaged_with_their_cameras_then_pat
         torch.testing.assert_close(coarse_o.reshape(25, 25, 3), full_o.reshape(100, 100, 3)[::4, ::4])
 
 
+def test_a_coarse_schedule_of_several_scales_goes_down_step_by_step(procedural_scene, monkeypatch):
+    """data.coarse_scale=[4, 2], data.coarse_steps=[2, 5]: averaged by 4 until step 2, by 2 until step 5, then
+    patches; given as Hydra gives lists too."""
+    from omegaconf import OmegaConf
+
+    schedule = OmegaConf.create({"scale": [4, 2], "steps": [2, 5]})
+    data = views_of(procedural_scene, patch_size=24, coarse_scale=schedule.scale, coarse_steps=schedule.steps)
+    drawn = next(iter(data.train_dataloader()))
+    view = int(drawn["camera_index"])
+    full = procedural_scene.train.images[view].float() / 255
+    for step, expected in ((0, 4), (1, 4), (2, 2), (4, 2), (5, 1), (9, 1)):
+        monkeypatch.setattr(data, "_steps_done", lambda step=step: step)
+        batch = data.on_after_batch_transfer(dict(drawn), 0)
+        if expected == 1:
+            assert batch["image"].shape == (24, 24, 3) and "scale" not in batch
+            continue
+        side = 100 // expected
+        assert batch["scale"] == expected and batch["image"].shape == (side, side, 3)
+        torch.testing.assert_close(batch["image"], full.reshape(side, expected, side, expected, 3).mean(dim=(1, 3)))
+        torch.testing.assert_close(batch["K"][:2], procedural_scene.train.K[view, :2] / expected)
+
+
 def test_draws_are_the_steps_own_so_a_resumed_run_draws_the_same(procedural_scene):
     data, again = views_of(procedural_scene, patch_size=16), views_of(procedural_scene, patch_size=16)
     first = list(iter(data.train_dataloader()))[:40]
@@ -95,8 +117,11 @@ def test_a_patch_larger_than_the_views_and_a_missing_root_are_refused(procedural
         views_of(procedural_scene, patch_size=101)
     with pytest.raises(ValueError, match="data.patch_size must be >= 1"):
         ViewDataModule(scene=lambda: procedural_scene, patch_size=0)
-    with pytest.raises(ValueError, match="data.coarse_scale must be a whole number >= 1"):
-        ViewDataModule(scene=lambda: procedural_scene, coarse_scale=1.5, coarse_steps=10)
+    for scale, steps, message in ((1.5, 10, "must be whole numbers >= 1"), (2, -1, "must be whole numbers >= 1"),
+                                  ([2, 4], [10, 20], "must go down"), ([4, 2], [20, 10], "must go down"),
+                                  ([4, 2], [10], "one step a scale")):
+        with pytest.raises(ValueError, match=f"data.coarse_scale .*{message}"):
+            ViewDataModule(scene=lambda: procedural_scene, coarse_scale=scale, coarse_steps=steps)
     with pytest.raises(ValueError, match=r"data.coarse_scale=101 is larger than the 100x100 training views"):
         views_of(procedural_scene, coarse_scale=101, coarse_steps=10)
 

@@ -74,6 +74,10 @@ class ViewDataModule(SceneDataModule):
             if steps > 0 and scale > min(train.height, train.width):
                 raise ValueError(f"data.coarse_scale={scale} is larger than the {train.width}x{train.height} training views "
                                  f"of {self.scene.source or 'the scene'}")
+        # a coarse view keeps at least MIN_COARSE_SIDE pixels a side (the loss's SSIM window needs 11): a preset sized
+        # for 1008x756 views averages small ones (a test's, a thumbnail capture's) less, not to a few pixels
+        largest = max(1, min(train.height, train.width) // MIN_COARSE_SIDE)
+        self.coarse_schedule = [(min(scale, largest), steps) for scale, steps in self.coarse_schedule]
 
     def scale_now(self) -> int:
         """The training views' downscale at the trainer's current step: the first scale of the coarse schedule whose
@@ -125,6 +129,10 @@ class ViewDataModule(SceneDataModule):
         if scale > 1:
             drawn = coarse_view(drawn, scale)
         return drawn
+
+
+# the smallest side a coarse view is averaged down to
+MIN_COARSE_SIDE = 16
 
 
 def coarse_schedule(coarse_scale: int | Sequence[int], coarse_steps: int | Sequence[int]) -> list[tuple[int, int]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -13,6 +14,11 @@ from nerf_lightning.data.images import downscale, downscale_mask
 from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.data.scene_data import SceneDataModule
+
+log = logging.getLogger(__name__)
+
+# the smallest side a coarse view is averaged down to
+MIN_COARSE_SIDE = 16
 
 
 def patch_camera(K: torch.Tensor, x0: torch.Tensor | int, y0: torch.Tensor | int) -> torch.Tensor:
@@ -77,7 +83,11 @@ class ViewDataModule(SceneDataModule):
         # a coarse view keeps at least MIN_COARSE_SIDE pixels a side (the loss's SSIM window needs 11): a preset sized
         # for 1008x756 views averages small ones (a test's, a thumbnail capture's) less, not to a few pixels
         largest = max(1, min(train.height, train.width) // MIN_COARSE_SIDE)
-        self.coarse_schedule = [(min(scale, largest), steps) for scale, steps in self.coarse_schedule]
+        if any(scale > largest for scale, _ in self.coarse_schedule):
+            log.warning("data.coarse_scale %s lowered to at most %d for the %dx%d training views: a coarse view keeps "
+                        "at least %d pixels a side", [scale for scale, _ in self.coarse_schedule], largest, train.width,
+                        train.height, MIN_COARSE_SIDE)
+            self.coarse_schedule = [(min(scale, largest), steps) for scale, steps in self.coarse_schedule]
 
     def scale_now(self) -> int:
         """The training views' downscale at the trainer's current step: the first scale of the coarse schedule whose
@@ -129,10 +139,6 @@ class ViewDataModule(SceneDataModule):
         if scale > 1:
             drawn = coarse_view(drawn, scale)
         return drawn
-
-
-# the smallest side a coarse view is averaged down to
-MIN_COARSE_SIDE = 16
 
 
 def coarse_schedule(coarse_scale: int | Sequence[int], coarse_steps: int | Sequence[int]) -> list[tuple[int, int]]:

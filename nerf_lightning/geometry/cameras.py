@@ -144,3 +144,26 @@ def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up: torch.Ten
     c2w = torch.eye(4, dtype=eye.dtype).repeat(eye.shape[0], 1, 1)
     c2w[:, :3, 0], c2w[:, :3, 1], c2w[:, :3, 2], c2w[:, :3, 3] = right, down, forward, eye
     return c2w
+
+
+def box_pixel_rectangles(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int, box: torch.Tensor) -> torch.Tensor:
+    """(V, 4) long: for each of V OpenCV cameras K (V, 3, 3), c2w (V, 4, 4), the pixel rectangle (x0, y0, x1, y1),
+    columns x0 <= j < x1 and rows y0 <= i < y1, that holds every pixel whose ray meets the box (6,)
+    (xmin, ymin, zmin, xmax, ymax, zmax): the bounds of the box's 8 corners projected, widened by a pixel and cut to
+    the view. A view with a corner at or behind its camera's plane (the camera inside the box, or beside it) gets
+    the whole view, as does one whose rectangle would be empty (the box out of sight)."""
+    low, high = box[:3].double(), box[3:].double()
+    corners = torch.stack(torch.meshgrid(*[torch.stack([low[axis], high[axis]]) for axis in range(3)], indexing="ij"), -1).reshape(8, 3)
+    w2c = torch.linalg.inv(c2w.double())
+    x_c = torch.einsum("vij,cj->vci", w2c[:, :3, :3], corners) + w2c[:, None, :3, 3]  # (V, 8, 3)
+    z = x_c[..., 2]
+    uv = torch.einsum("vij,vcj->vci", K.double()[:, :2, :], x_c / z.clamp(min=1e-9)[..., None])  # (V, 8, 2)
+    # pixel j covers u in [j, j + 1): floor of the least u, and one past the floor of the greatest
+    x0 = (uv[..., 0].amin(1).floor() - 1).clamp(0, width)
+    y0 = (uv[..., 1].amin(1).floor() - 1).clamp(0, height)
+    x1 = (uv[..., 0].amax(1).floor() + 2).clamp(0, width)
+    y1 = (uv[..., 1].amax(1).floor() + 2).clamp(0, height)
+    rectangles = torch.stack([x0, y0, x1, y1], -1).long()
+    whole = (z <= 1e-6 * (high - low).norm()).any(1) | (rectangles[:, 2] <= rectangles[:, 0]) | (rectangles[:, 3] <= rectangles[:, 1])
+    rectangles[whole] = torch.tensor([0, 0, width, height])
+    return rectangles

@@ -12,7 +12,8 @@ from nerf_lightning.data import RayDataModule
 from nerf_lightning.data.formats.turntable import OBJECT_BOUNDS, load_turntable
 from nerf_lightning.data.object_box import fit_scene_to_box, visual_hull_box
 from nerf_lightning.geometry.contraction import Contraction
-from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.geometry.cameras import box_pixel_rectangles
+from nerf_lightning.geometry.rays import image_rays, ray_aabb_intersect
 from nerf_lightning.geometry.space import SceneSpace
 
 
@@ -137,3 +138,76 @@ def test_the_datamodule_fits_the_scene_only_with_masks_in_use(turntable):
     unmasked = dataclasses.replace(turntable, splits={name: dataclasses.replace(views, masks=None) for name, views in turntable.splits.items()})
     with pytest.raises(ValueError, match="needs an object's masks, and .* has none"):
         RayDataModule(scene=lambda: unmasked, batch_size=256, masks="background", object_box="visual_hull").setup()
+
+
+def test_rays_are_drawn_only_where_they_can_meet_the_object_box(turntable):
+    data = RayDataModule(scene=lambda: turntable, batch_size=20_000, masks="background", object_box="visual_hull", seed=0)
+    data.setup()
+    train, box = data.scene.train, data.space.bounds
+    height, width = train.height, train.width
+    # every pixel whose ray meets the box lies in its view's rectangle, and the rectangles leave out most of the views
+    rays_o, rays_d = image_rays(train.K, train.c2w, height, width)
+    hits = []
+    for view in range(len(train)):
+        t_enter, t_exit = ray_aabb_intersect(rays_o[view], rays_d[view], box)
+        hits.append((t_exit > t_enter.clamp(min=0.0)).reshape(height, width))
+    hits = torch.stack(hits)  # (V, H, W)
+    inside = torch.zeros_like(hits)
+    for view, (x0, y0, x1, y1) in enumerate(data.rectangles.tolist()):
+        inside[view, y0:y1, x0:x1] = True
+    assert hits.any() and not (hits & ~inside).any()
+    assert inside.float().mean() < 0.99, inside.float().mean()  # the procedural object's hull box is wide: most of each view
+    # the drawn pixels all lie in the rectangles, and cover them uniformly: each pixel of the rectangles as likely
+    drawn = torch.cat([next(iter(data.train_dataloader()))["pixel_index"] for _ in range(3)])
+    flat_inside = inside.reshape(-1)
+    assert flat_inside[drawn].all()
+    counts = torch.bincount(drawn // (height * width), minlength=len(train)).double()
+    expected = inside.reshape(len(train), -1).sum(1).double() / flat_inside.sum() * len(drawn)
+    assert ((counts - expected).abs() < 5 * expected.sqrt() + 1).all(), (counts, expected)
+    # the colours the model gets are those pixels' (the drawn index is the one the rays are made from)
+    batch = data.on_after_batch_transfer({"pixel_index": drawn[:64]}, 0)
+    t_enter, t_exit = ray_aabb_intersect(batch["rays_o"], batch["rays_d"], box)
+    assert (t_exit > t_enter).float().mean() > 0.5
+
+
+def test_a_box_behind_or_around_a_camera_gives_the_whole_view():
+    K = torch.tensor([[[50.0, 0.0, 32.0], [0.0, 50.0, 32.0], [0.0, 0.0, 1.0]]]).expand(3, 3, 3)
+    c2w = torch.eye(4).repeat(3, 1, 1)
+    c2w[0, 2, 3] = -4.0  # the box 4 in front: a rectangle inside the view
+    c2w[1, 2, 3] = 0.0  # the camera inside the box
+    c2w[2, 2, 3] = 4.0  # the box behind the camera
+    rectangles = box_pixel_rectangles(K, c2w, 64, 64, torch.tensor([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]))
+    # in front: the near face (z = 3) spans 32 +- 50/3 px; widened by a pixel
+    assert rectangles[0].tolist() == [14, 14, 50, 50]
+    assert rectangles[1].tolist() == rectangles[2].tolist() == [0, 0, 64, 64]
+
+
+def test_an_object_share_of_the_rays_is_drawn_on_the_masks(turntable):
+    share = 0.75
+    data = RayDataModule(scene=lambda: turntable, batch_size=8000, masks="background", object_box="visual_hull",
+                         object_share=share, seed=0)
+    data.setup()
+    masks = data.scene.train.masks.reshape(-1)
+    drawn = next(iter(data.train_dataloader()))["pixel_index"]
+    assert drawn.shape == (8000,)
+    # the share on the object, and the rest drawn as without it: on the masks as often as the masks fill the rectangles
+    inside = torch.zeros_like(data.scene.train.masks)
+    for view, (x0, y0, x1, y1) in enumerate(data.rectangles.tolist()):
+        inside[view, y0:y1, x0:x1] = True
+    rest = float(masks[inside.reshape(-1)].float().mean())
+    expected = share + (1 - share) * rest
+    on_masks = float(masks[drawn].float().mean())
+    assert abs(on_masks - expected) < 0.02, (on_masks, expected)
+    plain = RayDataModule(scene=lambda: turntable, batch_size=8000, masks="background", object_box="visual_hull", seed=0)
+    plain.setup()
+    assert abs(float(masks[next(iter(plain.train_dataloader()))["pixel_index"]].float().mean()) - rest) < 0.02
+    # the batch's colours are the object's where the masks are: the object pixels drawn carry their mask
+    batch = data.on_after_batch_transfer({"pixel_index": drawn}, 0)
+    assert torch.equal(batch["object_mask"], masks[drawn])
+
+
+def test_an_object_share_needs_masks_drawn_as_background_and_a_share_in_range(turntable):
+    with pytest.raises(ValueError, match=r"data.object_share is the share .* in \[0, 1\]"):
+        RayDataModule(scene=lambda: turntable, batch_size=256, masks="background", object_share=1.5)
+    with pytest.raises(ValueError, match="data.object_share=0.5 draws rays on an object's masks, which need data.masks=background"):
+        RayDataModule(scene=lambda: turntable, batch_size=256, masks="ignore", object_share=0.5).setup()

@@ -43,7 +43,7 @@ def test_data_procedural_is_the_default_radiance_scene(scene_cache, monkeypatch)
 
 
 def test_the_format_presets_are_the_shared_ray_block_with_their_own_values():
-    shared = {"_target_": "nerf_lightning.data.RayDataModule", "ndc": False, "contract": False, "batch_size": 10000, "masks": None, "object_box": None, "val_views": 3,
+    shared = {"_target_": "nerf_lightning.data.RayDataModule", "ndc": False, "contract": False, "batch_size": 10000, "masks": None, "object_box": None, "object_share": None, "val_views": 3,
               "val_split": "val", "render_path": "test", "render_frames": 60, "val_steps": [], "val_every": 500, "seed": "${seed}"}
     own = {"blender": {"root": "x"}, "npz": {"root": "x"},
            "llff": {"root": "x", "batch_size": 4096, "render_path": "spiral", "render_frames": 120},

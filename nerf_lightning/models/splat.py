@@ -89,6 +89,11 @@ class SplatModule(SceneModule):
             (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`: the training view's c2w corrected before
             projecting; its own learning rate, its penalties logged as ``train/loss_camera_*``); None keeps the poses
             as loaded. Held-out views keep their loaded poses.
+        train_background: what a training view shows where its Gaussians leave it transparent: ``scene`` (the scene
+            space's background colour) or ``random`` (one random colour a step, gsplat's ``random_bkgd``; with
+            ``data.masks=background`` the photo's pixels outside the mask show that colour too): a Gaussian then
+            cannot stand for the background by being transparent, nor a dark surface by letting black through.
+            Held-out views are drawn over the scene's background.
     """
 
     kind = "splats"
@@ -98,8 +103,12 @@ class SplatModule(SceneModule):
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
                  rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
                  random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False,
-                 random_beside_points: int = 0, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None) -> None:
+                 random_beside_points: int = 0, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None,
+                 train_background: str = "scene") -> None:
         super().__init__(optimizer, scheduler)
+        if train_background not in ("scene", "random"):
+            raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
+        self.train_background = train_background
         self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
         if missing:
@@ -324,7 +333,12 @@ class SplatModule(SceneModule):
         height, width = image.shape[:2]
         if self.camera_refinement is not None and camera_index is not None:
             c2w = self.camera_refinement.corrected_c2w(c2w[None].to(self.device, torch.float32), camera_index.reshape(1))[0]
-        out, projection = self.draw(batch["K"], c2w, height, width)
+        background = None  # the scene's
+        if self.train_background == "random":  # one colour a step, behind the Gaussians and outside the object
+            background = torch.rand(3, device=image.device, dtype=image.dtype)
+            if "object_mask" in batch:
+                image = torch.where(batch["object_mask"][..., None], image, background)
+        out, projection = self.draw(batch["K"], c2w, height, width, background=background)
         if projection.means2d.requires_grad:
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
         # the strategy reads gradients as of a whole view: a patch's loss, a mean over fewer pixels, gives each of its
@@ -334,7 +348,7 @@ class SplatModule(SceneModule):
         self._drawn = (projection, full_width, full_height, height * width / (full_height * full_width))
         rgb = out["rgb"]
         if self.appearance is not None and camera_index is not None:  # the view's colour transform, the background as it is
-            rgb = self.appearance(rgb, camera_index.reshape(()), out["accumulation"], self.space.background)
+            rgb = self.appearance(rgb, camera_index.reshape(()), out["accumulation"], self.space.background if background is None else background)
         mask = batch.get("loss_mask")  # data.masks=exclude: no gradient reaches a pixel outside; the loss a mean over the mask
         if mask is not None:
             rgb = torch.where(mask[..., None], rgb, image)

@@ -239,7 +239,7 @@ def test_an_exclude_mask_keeps_the_pixels_outside_it_out_of_the_loss(make_config
     model = instantiate(make_config(*QUICK).model)
     model.log = lambda *args, **kwargs: None
     rendered = torch.rand(32, 32, 3, requires_grad=True)  # what the splats drew, standing in for the rasteriser
-    model.draw = lambda K, c2w, height, width: ({"rgb": rendered}, SimpleNamespace(means2d=torch.zeros(1, 2)))
+    model.draw = lambda K, c2w, height, width, background=None: ({"rgb": rendered}, SimpleNamespace(means2d=torch.zeros(1, 2)))
     mask = torch.zeros(32, 32, dtype=torch.bool)
     mask[8:24, 8:24] = True
     model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None, "loss_mask": mask}, 0).backward()
@@ -247,3 +247,37 @@ def test_an_exclude_mask_keeps_the_pixels_outside_it_out_of_the_loss(make_config
     rendered.grad = None
     model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None}, 0).backward()  # no mask: every pixel
     assert rendered.grad.abs().min() > 0
+
+
+@pytest.mark.parametrize("train_background", ["scene", "random"])
+def test_a_random_training_background_is_behind_the_gaussians_and_outside_the_object(make_config, scene_cache, monkeypatch, train_background):
+    from types import SimpleNamespace
+
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    model = instantiate(make_config(*QUICK, f"model.train_background={train_background}").model)
+    model.log = lambda *args, **kwargs: None
+    drawn_over = []
+
+    def draw(K, c2w, height, width, background=None):
+        drawn_over.append(background)
+        return {"rgb": torch.full((32, 32, 3), 0.5, requires_grad=True)}, SimpleNamespace(means2d=torch.zeros(1, 2))
+
+    model.draw = draw
+    seen = []
+    model.photometric_loss = lambda rgb, image, mask: seen.append(image) or (rgb - image).abs().mean()
+    mask = torch.zeros(32, 32, dtype=torch.bool)
+    mask[8:24, 8:24] = True
+    image = torch.rand(32, 32, 3) * mask[..., None]  # the object over black, as data.masks=background gives it
+    for _ in range(2):
+        model.training_step({"image": image, "K": None, "c2w": None, "object_mask": mask}, 0)
+    if train_background == "scene":  # the scene's colour behind the Gaussians, the photo as it is
+        assert drawn_over == [None, None] and all(torch.equal(target, image) for target in seen)
+    else:  # a colour a step, drawn behind the Gaussians and put outside the object, the object as it is
+        assert not torch.equal(drawn_over[0], drawn_over[1])
+        for colour, target in zip(drawn_over, seen):
+            assert torch.equal(target[mask], image[mask]) and torch.equal(target[~mask], colour.expand(int((~mask).sum()), 3))
+    with pytest.raises(InstantiationException, match="model.train_background must be scene or random, got 'noise'"):
+        instantiate(make_config(*QUICK, "model.train_background=noise").model)

@@ -300,8 +300,11 @@ def test_the_browser_draws_the_splats_where_the_rendered_frames_show_them(browse
 
         page.get_by_label("Drawn by", exact=True).click()
         page.get_by_role("option", name="rendered frames", exact=True).click()
-        wait_for(lambda: viewer.scheduler.settled(client_id) and viewer.frames_rendered > 0, what="the rendered frame")
-        assert viewer.last_frame[client_id]["height"] == 256 and not viewer.page.splat_handle.visible
+        # the frames come coarse first, then at full height: wait for the last (the scheduler can read settled from
+        # before the switch while the first, coarse frame is already counted)
+        wait_for(lambda: viewer.scheduler.settled(client_id) and viewer.last_frame.get(client_id, {}).get("height") == 256,
+                 what="the rendered frame at full height")
+        assert viewer.frames_rendered > 0 and not viewer.page.splat_handle.visible
         wait_for(lambda: shows("frames"), what="the frame on the canvas")
         page.screenshot(path=str(tmp_path / "frames.png"))
         for channel in range(3):  # each colour where the browser drew it, within a few pixels

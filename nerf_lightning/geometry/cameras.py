@@ -154,10 +154,10 @@ def box_pixel_rectangles(K: torch.Tensor, c2w: torch.Tensor, height: int, width:
     the whole view, as does one whose rectangle would be empty (the box out of sight)."""
     low, high = box[:3].double(), box[3:].double()
     corners = torch.stack(torch.meshgrid(*[torch.stack([low[axis], high[axis]]) for axis in range(3)], indexing="ij"), -1).reshape(8, 3)
-    w2c = torch.linalg.inv(c2w.double())
-    x_c = torch.einsum("vij,cj->vci", w2c[:, :3, :3], corners) + w2c[:, None, :3, 3]  # (V, 8, 3)
-    z = x_c[..., 2]
-    uv = torch.einsum("vij,vcj->vci", K.double()[:, :2, :], x_c / z.clamp(min=1e-9)[..., None])  # (V, 8, 2)
+    corners = corners.expand(K.shape[0], 8, 3)  # (V, 8, 3): the same corners seen by each camera
+    camera = pinhole_camera(K.double(), c2w.double(), height, width)
+    z = kornia.geometry.transform_points(camera.extrinsics, corners)[..., 2]  # (V, 8) camera-frame depths
+    uv = camera.project(corners)  # (V, 8, 2); a corner at or behind the camera's plane gives the whole view below
     # pixel j covers u in [j, j + 1): floor of the least u, and one past the floor of the greatest
     x0 = (uv[..., 0].amin(1).floor() - 1).clamp(0, width)
     y0 = (uv[..., 1].amin(1).floor() - 1).clamp(0, height)

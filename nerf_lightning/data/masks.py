@@ -35,6 +35,7 @@ def resolve_mode(mode: str | None, has_masks: bool, source: str) -> str | None:
 
 
 def composite_background(rgb: torch.Tensor, mask: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """(..., 3) colours in [0, 1] and (...) bool masks -> the colours where masked, ``background`` (3,) elsewhere."""
+    """(..., 3) colours in [0, 1] and (...) bool masks -> the colours where masked, ``background`` elsewhere: one
+    colour (3,), or one for each pixel (..., 3)."""
     return torch.where(mask[..., None], rgb, background.to(rgb))
 

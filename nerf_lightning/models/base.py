@@ -20,6 +20,16 @@ from nerf_lightning.metrics import image_metrics
 from nerf_lightning.parameters.groups import GroupSchedules, check_groups, replace_parameter, resize_to_saved
 
 
+TRAIN_BACKGROUNDS = ("scene", "random")  # model.train_background: the scene space's colour, or a random one
+
+
+def check_train_background(value: str) -> str:
+    """``value`` if it is one of :data:`TRAIN_BACKGROUNDS`, else one line naming the key."""
+    if value not in TRAIN_BACKGROUNDS:
+        raise ValueError(f"model.train_background must be one of {', '.join(TRAIN_BACKGROUNDS)}, got '{value}'")
+    return value
+
+
 class FieldModule(L.LightningModule):
     """A LightningModule that builds its optimiser and learning-rate scheduler from factories.
 

@@ -17,7 +17,8 @@ from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
-from nerf_lightning.models.base import SceneModule
+from nerf_lightning.data.masks import composite_background
+from nerf_lightning.models.base import SceneModule, check_train_background
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.rendering.renderer import Renderer
 from nerf_lightning.rendering.rounds import RoundsRenderer
@@ -81,9 +82,7 @@ class RadianceFieldModule(SceneModule):
         self.renderer = renderer or RoundsRenderer()
         self.chunk_size = chunk_size
         self.camera_refinement = camera_refinement
-        if train_background not in ("scene", "random"):
-            raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
-        self.train_background = train_background
+        self.train_background = check_train_background(train_background)
         if compile and (not self.renderer.fixed_shapes or (sampler.grid is not None and sampler.capacity is None)):
             raise ValueError("model.compile=true needs a training step of fixed shapes: model/renderer=table and, with "
                              "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
@@ -271,7 +270,7 @@ class RadianceFieldModule(SceneModule):
             colour = torch.rand_like(rgb)
             rgb = rgb + (1.0 - out["accumulation"])[:, None] * (colour - self.space.background.to(rgb))
             if "object_mask" in batch:  # data.masks=background: outside the object the target is that colour too
-                target = torch.where(batch["object_mask"][:, None], target, colour)
+                target = composite_background(target, batch["object_mask"], colour)
         samples = out.get("samples")
         complete = samples.extras.get("complete") if samples is not None else None  # a fixed capacity: rays cut short stay out of the loss
         if complete is None:

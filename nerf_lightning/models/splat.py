@@ -24,7 +24,8 @@ from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr, ssim_map
-from nerf_lightning.models.base import SceneModule
+from nerf_lightning.data.masks import composite_background
+from nerf_lightning.models.base import SceneModule, check_train_background
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
@@ -106,9 +107,7 @@ class SplatModule(SceneModule):
                  random_beside_points: int = 0, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None,
                  train_background: str = "scene") -> None:
         super().__init__(optimizer, scheduler)
-        if train_background not in ("scene", "random"):
-            raise ValueError(f"model.train_background must be scene or random, got '{train_background}'")
-        self.train_background = train_background
+        self.train_background = check_train_background(train_background)
         self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
         if missing:
@@ -337,7 +336,7 @@ class SplatModule(SceneModule):
         if self.train_background == "random":  # one colour a step, behind the Gaussians and outside the object
             background = torch.rand(3, device=image.device, dtype=image.dtype)
             if "object_mask" in batch:
-                image = torch.where(batch["object_mask"][..., None], image, background)
+                image = composite_background(image, batch["object_mask"], background)
         out, projection = self.draw(batch["K"], c2w, height, width, background=background)
         if projection.means2d.requires_grad:
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient

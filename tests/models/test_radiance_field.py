@@ -140,7 +140,7 @@ def test_a_random_training_background_penalises_transparent_rays_only(make_confi
     model.render = lambda *args, **kwargs: {"rgb": white, "accumulation": torch.ones(4096), "samples": None, "n_evaluated": 0}
     model.sampler.losses = lambda *args: {}
     assert float(model.training_step(batch, 0)) == 0.0
-    with pytest.raises(Exception, match="model.train_background must be scene or random, got 'grey'"):
+    with pytest.raises(Exception, match="model.train_background must be one of scene, random, got 'grey'"):
         instantiate(make_config("experiment=fast", "model.train_background=grey").model)
 
 

@@ -279,5 +279,5 @@ def test_a_random_training_background_is_behind_the_gaussians_and_outside_the_ob
         assert not torch.equal(drawn_over[0], drawn_over[1])
         for colour, target in zip(drawn_over, seen):
             assert torch.equal(target[mask], image[mask]) and torch.equal(target[~mask], colour.expand(int((~mask).sum()), 3))
-    with pytest.raises(InstantiationException, match="model.train_background must be scene or random, got 'noise'"):
+    with pytest.raises(InstantiationException, match="model.train_background must be one of scene, random, got 'noise'"):
         instantiate(make_config(*QUICK, "model.train_background=noise").model)

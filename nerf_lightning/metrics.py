@@ -8,6 +8,12 @@ import numpy as np
 import torch
 
 
+def opacity_mask_loss(accumulation: torch.Tensor, object_mask: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """() mean binary cross-entropy of (...) opacities in [0, 1] against (...) bool object masks: opaque on the object,
+    clear off it (NeuS's mask loss). Clamped to [eps, 1 - eps], so that a pixel already right gives a finite loss."""
+    return torch.nn.functional.binary_cross_entropy(accumulation.clamp(eps, 1.0 - eps), object_mask.to(accumulation.dtype))
+
+
 def mse_to_psnr(mse: torch.Tensor) -> torch.Tensor:
     """PSNR in dB of colours in [0, 1] from their mean squared error: -10 log10(mse)."""
     return -10.0 * torch.log10(mse)

@@ -4,6 +4,7 @@ the random state in checkpoints, so a resumed run draws what the uninterrupted o
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -28,6 +29,21 @@ def check_train_background(value: str) -> str:
     if value not in TRAIN_BACKGROUNDS:
         raise ValueError(f"model.train_background must be one of {', '.join(TRAIN_BACKGROUNDS)}, got '{value}'")
     return value
+
+
+def check_mask_loss(weight: float) -> float:
+    """``weight`` of ``model.mask_loss`` if it is a finite number >= 0, else one line naming the key."""
+    if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
+        raise ValueError(f"model.mask_loss must be a number >= 0 (0: none), got {weight!r}")
+    return float(weight)
+
+
+def masks_for_mask_loss(batch: dict[str, Any]) -> torch.Tensor:
+    """The batch's ``object_mask``, or one line saying what ``model.mask_loss`` needs."""
+    if "object_mask" not in batch:
+        raise ValueError("model.mask_loss > 0 needs the object's masks in each training batch: data.masks=background "
+                         "(and a capture with masks); set model.mask_loss=0 otherwise")
+    return batch["object_mask"]
 
 
 class FieldModule(L.LightningModule):

@@ -16,9 +16,9 @@ from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
 from nerf_lightning.data.masks import composite_background
-from nerf_lightning.models.base import SceneModule, check_train_background
+from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.rendering.renderer import Renderer
 from nerf_lightning.rendering.rounds import RoundsRenderer
@@ -54,6 +54,10 @@ class RadianceFieldModule(SceneModule):
             photos that are opaque everywhere (a real capture) a transparent ray then cannot match its pixel, so the
             field learns surfaces instead of a fog. Not for photos that had alpha: their targets show the background
             (but with ``data.masks=background`` the target outside the mask shows the same random colour).
+        mask_loss: the weight of a binary cross-entropy between each training ray's opacity and its object mask
+            (NeuS's mask loss; logged as ``train/loss_mask``), with ``data.masks=background``: the field is taught
+            where the object ends by the masks themselves, not only by the background's colour, which a dark surface
+            or a hole in the object (seen through, masked out) shares. 0: none.
         compile: run the training step's forward and loss (sampling, field, compositing, loss) as one graph through
             ``torch.compile(fullgraph=True)``, its backward compiled with it (inductor: C++ on a CPU, Triton kernels on
             a GPU); the sampler's grid refreshes stay outside. Worth it where the step has fixed shapes (the GPU
@@ -74,6 +78,7 @@ class RadianceFieldModule(SceneModule):
         chunk_size: int = 4096,
         camera_refinement: CameraRefinement | None = None,
         train_background: str = "scene",
+        mask_loss: float = 0.0,
         compile: bool = False,
         compile_mode: str | None = None,
     ) -> None:
@@ -83,6 +88,7 @@ class RadianceFieldModule(SceneModule):
         self.chunk_size = chunk_size
         self.camera_refinement = camera_refinement
         self.train_background = check_train_background(train_background)
+        self.mask_loss = check_mask_loss(mask_loss)
         if compile and (not self.renderer.fixed_shapes or (sampler.grid is not None and sampler.capacity is None)):
             raise ValueError("model.compile=true needs a training step of fixed shapes: model/renderer=table and, with "
                              "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
@@ -234,6 +240,8 @@ class RadianceFieldModule(SceneModule):
 
     def training_step(self, batch: RayBatch, batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)  # a grid refresh: outside the compiled graph, on its own steps
+        if self.mask_loss:
+            masks_for_mask_loss(batch)  # one line, outside the compiled graph, where the batch has no masks
         if self.compiled_step is None:
             terms = self.step_losses(batch)
         else:
@@ -278,6 +286,8 @@ class RadianceFieldModule(SceneModule):
         else:
             mse = ((rgb - target).square().mean(dim=1) * complete).sum() / complete.sum().clamp(min=1)
         extra_losses = self.sampler.losses(out["samples"], out, target)
+        if self.mask_loss:
+            extra_losses["mask"] = self.mask_loss * opacity_mask_loss(out["accumulation"], batch["object_mask"])
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
         appearance = self.field.appearance

@@ -23,9 +23,9 @@ from nerf_lightning.devices import memory_of
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import mse_to_psnr, ssim_map
+from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss, ssim_map
 from nerf_lightning.data.masks import composite_background
-from nerf_lightning.models.base import SceneModule, check_train_background
+from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
@@ -95,6 +95,9 @@ class SplatModule(SceneModule):
             ``data.masks=background`` the photo's pixels outside the mask show that colour too): a Gaussian then
             cannot stand for the background by being transparent, nor a dark surface by letting black through.
             Held-out views are drawn over the scene's background.
+        mask_loss: the weight of a binary cross-entropy between each training pixel's opacity and its object mask
+            (NeuS's mask loss; logged as ``train/loss_mask``), with ``data.masks=background``: the Gaussians are
+            taught where the object ends by the masks themselves, not only by the background's colour. 0: none.
     """
 
     kind = "splats"
@@ -105,9 +108,10 @@ class SplatModule(SceneModule):
                  rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
                  random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False,
                  random_beside_points: int = 0, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None,
-                 train_background: str = "scene") -> None:
+                 train_background: str = "scene", mask_loss: float = 0.0) -> None:
         super().__init__(optimizer, scheduler)
         self.train_background = check_train_background(train_background)
+        self.mask_loss = check_mask_loss(mask_loss)
         self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
         if missing:
@@ -353,6 +357,10 @@ class SplatModule(SceneModule):
             rgb = torch.where(mask[..., None], rgb, image)
         with record_function("splats.loss"):
             loss = self.photometric_loss(rgb, image, mask)
+        if self.mask_loss:
+            mask_term = self.mask_loss * opacity_mask_loss(out["accumulation"], masks_for_mask_loss(batch))
+            loss = loss + mask_term
+            self.log("train/loss_mask", mask_term.detach(), on_step=True, on_epoch=False)
         if not loss.requires_grad:  # the view saw no Gaussian: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
         regulariser = None if self.strategy is None else self.strategy.loss(self.gaussians)  # MCMC's

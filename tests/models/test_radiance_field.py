@@ -1,6 +1,7 @@
 """A real radiance-field training on the procedural scene, then render, eval and export from its checkpoint."""
 
 import json
+import math
 
 import imageio.v3 as iio
 import numpy as np
@@ -142,6 +143,31 @@ def test_a_random_training_background_penalises_transparent_rays_only(make_confi
     assert float(model.training_step(batch, 0)) == 0.0
     with pytest.raises(Exception, match="model.train_background must be one of scene, random, got 'grey'"):
         instantiate(make_config("experiment=fast", "model.train_background=grey").model)
+
+
+def test_the_mask_loss_teaches_opacity_from_the_masks(make_config, scene_cache, monkeypatch):
+    from hydra.utils import instantiate
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    black = torch.zeros(4, 3)  # a dark surface and the plain background look the same in colour
+    batch = {"rays_o": torch.tensor([[0.0, 0.0, 4.0]]).expand(4, 3), "rays_d": torch.tensor([[0.0, 0.0, -1.0]]).expand(4, 3),
+             "rgb": black, "object_mask": torch.tensor([True, True, False, False])}
+    model = instantiate(make_config("experiment=fast", "model.mask_loss=0.5").model)
+    model.sampler.losses = lambda *args: {}
+    model.sampler.update = lambda *args: None
+    accumulation = torch.tensor([0.5, 0.5, 0.5, 0.5], requires_grad=True)
+    model.render = lambda *args, **kwargs: {"rgb": black, "accumulation": accumulation, "samples": None, "n_evaluated": 0}
+    loss = model.training_step(batch, 0)
+    assert float(loss) == pytest.approx(0.5 * math.log(2.0), rel=1e-4)  # the colours match: all of it is the masks'
+    loss.backward()
+    assert (accumulation.grad[:2] < 0).all() and (accumulation.grad[2:] > 0).all()  # opaque on the object, clear off it
+    accumulation = torch.tensor([1.0, 1.0, 0.0, 0.0], requires_grad=True)  # the masks' outline: (nearly) nothing to pay
+    assert float(model.training_step(batch, 0)) < 2e-3
+    del batch["object_mask"]  # data.masks other than background: one line, not a KeyError
+    with pytest.raises(ValueError, match="model.mask_loss > 0 needs the object's masks .* data.masks=background"):
+        model.training_step(batch, 0)
+    with pytest.raises(Exception, match="model.mask_loss must be a number >= 0"):
+        instantiate(make_config("experiment=fast", "model.mask_loss=-1").model)
 
 
 def test_appearance_and_camera_refinement_train_and_load_from_their_checkpoint(make_config, scene_cache, monkeypatch):

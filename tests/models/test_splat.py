@@ -281,3 +281,26 @@ def test_a_random_training_background_is_behind_the_gaussians_and_outside_the_ob
             assert torch.equal(target[mask], image[mask]) and torch.equal(target[~mask], colour.expand(int((~mask).sum()), 3))
     with pytest.raises(InstantiationException, match="model.train_background must be one of scene, random, got 'noise'"):
         instantiate(make_config(*QUICK, "model.train_background=noise").model)
+
+
+def test_the_mask_loss_teaches_the_gaussians_opacity_from_the_masks(make_config, scene_cache, monkeypatch):
+    from types import SimpleNamespace
+
+    from hydra.utils import instantiate
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    model = instantiate(make_config(*QUICK, "model.mask_loss=0.5").model)
+    model.log = lambda *args, **kwargs: None
+    mask = torch.zeros(32, 32, dtype=torch.bool)
+    mask[8:24, 8:24] = True
+    image = torch.zeros(32, 32, 3)  # a black object over the black background: the colours cannot tell them apart
+    accumulation = torch.full((32, 32), 0.5, requires_grad=True)
+    model.draw = lambda K, c2w, height, width, background=None: (
+        {"rgb": torch.zeros(32, 32, 3, requires_grad=True), "accumulation": accumulation}, SimpleNamespace(means2d=torch.zeros(1, 2)))
+    model.photometric_loss = lambda rgb, image, mask: (rgb - image).abs().mean()
+    loss = model.training_step({"image": image, "K": None, "c2w": None, "object_mask": mask}, 0)
+    assert float(loss) == pytest.approx(0.5 * math.log(2.0), rel=1e-4)  # the colours match: all of it is the masks'
+    loss.backward()
+    assert (accumulation.grad[mask] < 0).all() and (accumulation.grad[~mask] > 0).all()  # opaque on the object, clear off it
+    with pytest.raises(ValueError, match="model.mask_loss > 0 needs the object's masks .* data.masks=background"):
+        model.training_step({"image": image, "K": None, "c2w": None}, 0)

@@ -8,10 +8,16 @@ import numpy as np
 import torch
 
 
-def opacity_mask_loss(accumulation: torch.Tensor, object_mask: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
-    """() mean binary cross-entropy of (...) opacities in [0, 1] against (...) bool object masks: opaque on the object,
-    clear off it (NeuS's mask loss). Clamped to [eps, 1 - eps], so that a pixel already right gives a finite loss."""
-    return torch.nn.functional.binary_cross_entropy(accumulation.clamp(eps, 1.0 - eps), object_mask.to(accumulation.dtype))
+def opacity_mask_loss(accumulation: torch.Tensor, object_mask: torch.Tensor, weight: torch.Tensor | None = None,
+                      eps: float = 1e-3) -> torch.Tensor:
+    """() mean binary cross-entropy of (...) opacities in [0, 1] against (...) object masks (bool, or the share of
+    each pixel on the object): opaque on the object, clear off it (NeuS's mask loss). Clamped to [eps, 1 - eps], so
+    that a pixel already right gives a finite loss. ``weight`` (...): a weighted mean instead (0 leaves a pixel out)."""
+    entropy = torch.nn.functional.binary_cross_entropy(accumulation.clamp(eps, 1.0 - eps), object_mask.to(accumulation.dtype),
+                                                       reduction="none")
+    if weight is None:
+        return entropy.mean()
+    return (entropy * weight).sum() / weight.sum().clamp(min=1)
 
 
 def mse_to_psnr(mse: torch.Tensor) -> torch.Tensor:

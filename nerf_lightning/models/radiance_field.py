@@ -12,12 +12,12 @@ from torch import nn
 
 from nerf_lightning.compiling import CompiledOrEager
 from nerf_lightning.data.batches import RayBatch
+from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
-from nerf_lightning.data.masks import composite_background
 from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.rendering.renderer import Renderer
@@ -287,7 +287,8 @@ class RadianceFieldModule(SceneModule):
             mse = ((rgb - target).square().mean(dim=1) * complete).sum() / complete.sum().clamp(min=1)
         extra_losses = self.sampler.losses(out["samples"], out, target)
         if self.mask_loss:
-            extra_losses["mask"] = self.mask_loss * opacity_mask_loss(out["accumulation"], batch["object_mask"])
+            # a ray a fixed capacity cut short has only part of its opacity: left out, as from the colours' loss
+            extra_losses["mask"] = self.mask_loss * opacity_mask_loss(out["accumulation"], batch["object_mask"], complete)
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
         appearance = self.field.appearance

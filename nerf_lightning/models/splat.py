@@ -17,6 +17,7 @@ from torch.profiler import record_function
 
 from nerf_lightning.capture.choices import COLMAP_EXTRA
 from nerf_lightning.data.batches import ViewBatch
+from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
@@ -24,7 +25,6 @@ from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss, ssim_map
-from nerf_lightning.data.masks import composite_background
 from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine

@@ -1,5 +1,5 @@
 """Quality metrics: of images (PSNR and SSIM from kornia, depth error; an SSIM map for losses, equal to kornia's) and
-of meshes (Chamfer distance)."""
+of meshes (Chamfer distance); and the masks' opacity loss (binary cross-entropy against the object masks)."""
 
 from __future__ import annotations
 

@@ -33,7 +33,7 @@ def check_train_background(value: str) -> str:
 
 def check_mask_loss(weight: float) -> float:
     """``weight`` of ``model.mask_loss`` if it is a finite number >= 0, else one line naming the key."""
-    if not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
+    if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
         raise ValueError(f"model.mask_loss must be a number >= 0 (0: none), got {weight!r}")
     return float(weight)
 

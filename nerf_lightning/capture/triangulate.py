@@ -16,6 +16,10 @@ fitted to.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
+import logging
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -27,9 +31,12 @@ import torch
 from nerf_lightning.capture.colmap import (chunks, colmap_log, database_statistics, exhaustive_pairs, extract_features, import_pycolmap,
                                            match_features, model_statistics, sparse_points)
 from nerf_lightning.capture.retrieval import nearest_pairs
+from nerf_lightning.data.formats.shared import default_cache
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.scene import Views
 from nerf_lightning.io import write_png
+
+log = logging.getLogger(__name__)
 
 # a capture of at most this many views matches every pair; a larger one each view with its nearest NEIGHBOURS
 ALL_PAIRS_UP_TO = 40
@@ -158,3 +165,64 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
     report = {"seconds": {stage: round(value, 2) for stage, value in seconds.items()}, "matches": matches, **statistics,
               "views_matched": len(kept)}
     return SparsePoints.mapped(positions, colours), report
+
+
+# part of the cache's key: bump it when triangulate_views changes what the same views give, so that the points
+# cached before are made again
+CACHE_VERSION = 1
+
+
+def plain(value: Any) -> Any:
+    """A numpy number as the Python number JSON writes (the report's statistics may hold them)."""
+    if hasattr(value, "item"):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def views_digest(views: Views, settings: dict[str, Any]) -> str:
+    """A hex digest of what :func:`triangulate_views` reads of the ``views`` (images, masks, K, c2w, size) and its
+    ``settings`` (and pycolmap's version): the same digest, the same points."""
+    pycolmap = import_pycolmap()
+    digest = hashlib.blake2b(digest_size=20)
+    header = {"version": CACHE_VERSION, "pycolmap": getattr(pycolmap, "__version__", "?"), "height": views.height,
+              "width": views.width, **settings}
+    digest.update(json.dumps(header, sort_keys=True).encode())
+    for tensor in (views.K, views.c2w, views.images, views.masks if settings.get("masks") else None):
+        if tensor is None:
+            digest.update(b"none")
+            continue
+        array = np.ascontiguousarray(tensor.detach().cpu().numpy())  # a memory-mapped stack is read, not copied twice
+        digest.update(f"{array.dtype}{array.shape}".encode())
+        digest.update(memoryview(array).cast("B"))
+    return digest.hexdigest()
+
+
+def triangulate_views_once(views: Views, *, masks: bool = True, cache_dir: str | Path | None = None,
+                           **settings: Any) -> tuple[SparsePoints, dict[str, Any]]:
+    """:func:`triangulate_views`, its points kept in ``cache_dir/triangulated`` (None: ``NERF_LIGHTNING_CACHE``,
+    default ~/.cache/nerf_lightning) under a digest of the views and settings (:func:`views_digest`), so that the
+    runs after the first on the same training views (a sweep, a run started again) load them instead of matching
+    again. The report of a loaded run is the first run's, with ``cached`` set to the file it came from."""
+    masks = masks and views.masks is not None
+    folder = Path(cache_dir or default_cache()) / "triangulated"
+    path = folder / f"{views_digest(views, {'masks': masks, **settings})}.npz"
+    if path.is_file():
+        try:
+            with np.load(path) as stored:
+                points = SparsePoints.mapped(stored["positions"], stored["colours"])
+                report = json.loads(str(stored["report"]))
+            return points, {**report, "cached": str(path)}
+        except (OSError, ValueError, KeyError) as error:  # a damaged file: made again below, and replaced
+            log.warning("the cached sparse points %s could not be read (%s); triangulating again", path, error)
+    points, report = triangulate_views(views, masks=masks, **settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    handle, name = tempfile.mkstemp(dir=folder, prefix=f".{path.stem}.", suffix=".npz")
+    staging = Path(name)
+    try:
+        with os.fdopen(handle, "wb") as file:
+            np.savez(file, positions=points.positions.numpy(), colours=points.colours.numpy(), report=json.dumps(report, default=plain))
+        staging.chmod(0o644)  # as a file written plainly would be (mkstemp's are the owner's alone)
+        os.replace(staging, path)  # whole or not at all, whichever process finishes last
+    finally:
+        staging.unlink(missing_ok=True)
+    return points, report

@@ -223,12 +223,13 @@ class SplatModule(SceneModule):
     @staticmethod
     def triangulated_points(views: Any, masks: bool = True) -> SparsePoints | None:
         """The sparse points triangulated from the training ``views`` and their poses (with ``masks``, inside the views'
-        masks, where they have them); None, after one warning saying why, where pycolmap is missing, fails, or too few
-        points come back (the random start follows)."""
+        masks, where they have them), kept in the cache for the next run on the same views
+        (:func:`~nerf_lightning.capture.triangulate.triangulate_views_once`); None, after one warning saying why, where
+        pycolmap is missing, fails, or too few points come back (the random start follows)."""
         try:
-            from nerf_lightning.capture.triangulate import triangulate_views
+            from nerf_lightning.capture.triangulate import triangulate_views_once
 
-            points, report = triangulate_views(views, masks=masks)
+            points, report = triangulate_views_once(views, masks=masks)
         except MissingExtraError:
             log.warning("model.triangulate needs pycolmap, the colmap extra (%s); the Gaussians start at random instead", COLMAP_EXTRA)
             return None
@@ -240,9 +241,12 @@ class SplatModule(SceneModule):
             log.warning("model.triangulate: only %d points triangulated from the %d training views (%s); the Gaussians start at "
                         "random instead", len(points), len(views), report["matches"])
             return None
+        took = ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items())
+        if "cached" in report:  # the same training views triangulated by an earlier run
+            took = f"loaded from {report['cached']}: an earlier run on the same views made them in {sum(report['seconds'].values()):.0f} s"
         log.info("the capture has no sparse points: %d triangulated from its %d training views and their poses (%s), reprojected "
-                 "within %.2f px on average; the Gaussians start there", len(points), len(views),
-                 ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items()), report["mean_reprojection_error_px"])
+                 "within %.2f px on average; the Gaussians start there", len(points), len(views), took,
+                 report["mean_reprojection_error_px"])
         return points
 
     def parameter_groups(self) -> list[dict[str, Any]]:

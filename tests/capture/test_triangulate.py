@@ -6,10 +6,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from pathlib import Path
 
+import numpy as np
 import torch
 
-from nerf_lightning.capture.triangulate import pose_pairs, triangulate_views
+from nerf_lightning.capture.triangulate import pose_pairs, triangulate_views, triangulate_views_once
 from nerf_lightning.data.formats import load_turntable
 from nerf_lightning.data.formats.turntable import BOXES, DISC, SPHERES
 from nerf_lightning.data.points import SparsePoints
@@ -51,7 +53,7 @@ def object_distance(points: torch.Tensor) -> torch.Tensor:
 
 
 @needs_pycolmap
-def test_a_masked_turntable_triangulated_from_its_poses_lies_on_the_object(scene_cache):
+def test_a_masked_turntable_triangulated_from_its_poses_lies_on_the_object(scene_cache, tmp_path):
     """The turntable's object turns and its room stands still: only inside the masks do the photos agree with the
     object-frame poses. Triangulated inside the masks, the points lie on the object's surface, within a pixel's
     footprint; they are coloured from the photos (the object's noise, not grey). Without the masks they are not."""
@@ -81,6 +83,11 @@ def test_a_masked_turntable_triangulated_from_its_poses_lies_on_the_object(scene
         (len(again), len(points), int(match.sum()))
     rows, columns = match.nonzero(as_tuple=True)
     assert torch.equal(again.colours[rows], points.colours[columns])
+    # kept in the cache with COLMAP's own report, and loaded back as they were
+    kept, kept_report = triangulate_views_once(views, cache_dir=tmp_path)
+    loaded, loaded_report = triangulate_views_once(views, cache_dir=tmp_path)
+    assert torch.equal(loaded.positions, kept.positions) and torch.equal(loaded.colours, kept.colours)
+    assert {**loaded_report, "cached": None} == {**kept_report, "cached": None} and "cached" not in kept_report
 
 
 @needs_pycolmap
@@ -99,7 +106,8 @@ def test_views_that_match_nothing_are_left_out_and_none_matching_gives_no_points
     assert len(points) == 0 and report["views_matched"] < 2 and report["points"] == 0, report
 
 
-def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_warning(procedural_scene, make_config, monkeypatch, caplog):
+def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_warning(procedural_scene, make_config, monkeypatch, caplog,
+                                                                                     tmp_path):
     from hydra.utils import instantiate
 
     import nerf_lightning.capture.triangulate as triangulate
@@ -115,6 +123,7 @@ def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_w
     }
     for outcome, fake in outcomes.items():
         monkeypatch.setattr(triangulate, "triangulate_views", lambda views, **_: fake(views))
+        monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(tmp_path / outcome))  # each outcome its own cache, none found
         model = instantiate(cfg.model)
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="nerf_lightning.models.splat"):
@@ -128,3 +137,47 @@ def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_w
             assert ("needs pycolmap" in warnings[0].getMessage()) == (outcome == "no pycolmap")
             assert ("could not triangulate" in warnings[0].getMessage()) == (outcome == "COLMAP fails")
             assert len(model.gaussians) == 500  # the random start
+
+
+def test_the_points_are_triangulated_once_for_the_same_views_and_again_for_any_change(procedural_scene, tmp_path, monkeypatch, caplog):
+    """A sweep or a run started again on the same training views loads the points the first run triangulated; views
+    that differ in a pixel, a mask or a pose, or another setting, are triangulated again; a damaged cache file is
+    replaced after one warning."""
+    import nerf_lightning.capture.triangulate as triangulate
+
+    calls = []
+
+    def fake(views, **settings):
+        calls.append(settings)
+        points = SparsePoints(views.c2w[:, :3, 3].contiguous().float(), torch.full((len(views), 3), len(calls), dtype=torch.uint8))
+        return points, {"seconds": {"features": 2.0}, "points": np.int64(len(views)), "mean_reprojection_error_px": np.float32(0.25)}
+
+    monkeypatch.setattr(triangulate, "triangulate_views", fake)
+    views = procedural_scene.train
+    first, report = triangulate_views_once(views, cache_dir=tmp_path)
+    again, cached = triangulate_views_once(views, cache_dir=tmp_path)
+    assert len(calls) == 1 and "cached" not in report and cached["cached"].startswith(str(tmp_path / "triangulated"))
+    assert torch.equal(again.positions, first.positions) and torch.equal(again.colours, first.colours)
+    assert cached["points"] == len(views) and cached["seconds"] == {"features": 2.0} and cached["mean_reprojection_error_px"] == 0.25
+    images = views.images.clone()
+    images[3, 5, 7, 0] = (255 if images.dtype == torch.uint8 else 1) - images[3, 5, 7, 0]  # one channel of one pixel
+    c2w = views.c2w.clone()
+    c2w[0, 0, 3] += 1e-4
+    for changed in (dataclasses.replace(views, images=images), dataclasses.replace(views, c2w=c2w)):
+        count = len(calls)
+        _, report = triangulate_views_once(changed, cache_dir=tmp_path)
+        assert len(calls) == count + 1 and "cached" not in report
+    triangulate_views_once(views, cache_dir=tmp_path, max_features=1024)
+    assert len(calls) == 4 and calls[-1] == {"masks": False, "max_features": 1024}
+    # the views' masks count where they are used
+    masked = dataclasses.replace(views, masks=torch.ones(len(views), views.height, views.width, dtype=torch.bool))
+    triangulate_views_once(masked, cache_dir=tmp_path)
+    triangulate_views_once(masked, cache_dir=tmp_path, masks=False)
+    assert len(calls) == 5  # without its masks, the masked capture is the one cached first
+    (path,) = [path for path in (tmp_path / "triangulated").iterdir() if path.name.startswith(Path(cached["cached"]).stem)]
+    path.write_bytes(b"not an npz")
+    with caplog.at_level(logging.WARNING, logger="nerf_lightning.capture.triangulate"):
+        points, report = triangulate_views_once(views, cache_dir=tmp_path)
+    assert len(calls) == 6 and "could not be read" in caplog.text and str(path) in caplog.text
+    assert torch.equal(triangulate_views_once(views, cache_dir=tmp_path)[0].colours, points.colours) and len(calls) == 6
+    assert not [path for path in (tmp_path / "triangulated").iterdir() if path.name.startswith(".")]  # no staging file left

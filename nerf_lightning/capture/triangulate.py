@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import importlib.metadata
+import inspect
 import json
 import logging
 import os
@@ -167,9 +169,14 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
     return SparsePoints.mapped(positions, colours), report
 
 
-# part of the cache's key: bump it when triangulate_views changes what the same views give, so that the points
-# cached before are made again
+# part of the cache's key: bump it when the same views and settings would give other points (a change in
+# triangulate_views, or in capture/colmap.py's feature extraction or matching), so that the points cached before are
+# made again
 CACHE_VERSION = 1
+# the settings of triangulate_views that say what is shown, not what comes back: left out of the key
+NOT_IN_KEY = ("views", "progress", "verbose")
+# the settings and their defaults, read once (not from whatever the module's name points at later)
+TRIANGULATE_SIGNATURE = inspect.signature(triangulate_views)
 
 
 def plain(value: Any) -> Any:
@@ -180,20 +187,27 @@ def plain(value: Any) -> Any:
 
 
 def views_digest(views: Views, settings: dict[str, Any]) -> str:
-    """A hex digest of what :func:`triangulate_views` reads of the ``views`` (images, masks, K, c2w, size) and its
-    ``settings`` (and pycolmap's version): the same digest, the same points."""
-    pycolmap = import_pycolmap()
+    """A hex digest of what :func:`triangulate_views` reads of the ``views`` (images, masks where ``settings`` use
+    them, K, c2w, size), of its ``settings`` as they take effect (its defaults filled in), and of pycolmap's version:
+    the same digest, the same points."""
+    bound = TRIANGULATE_SIGNATURE.bind_partial(views, **settings)
+    bound.apply_defaults()
+    effective = {key: value for key, value in bound.arguments.items() if key not in NOT_IN_KEY}
+    try:
+        version = importlib.metadata.version("pycolmap")
+    except importlib.metadata.PackageNotFoundError:  # nothing is cached then: triangulate_views says pycolmap is missing
+        version = None
     digest = hashlib.blake2b(digest_size=20)
-    header = {"version": CACHE_VERSION, "pycolmap": getattr(pycolmap, "__version__", "?"), "height": views.height,
-              "width": views.width, **settings}
+    header = {"version": CACHE_VERSION, "pycolmap": version, "all_pairs_up_to": ALL_PAIRS_UP_TO, "height": views.height,
+              "width": views.width, **effective}
     digest.update(json.dumps(header, sort_keys=True).encode())
-    for tensor in (views.K, views.c2w, views.images, views.masks if settings.get("masks") else None):
+    for tensor in (views.K, views.c2w, views.images, views.masks if effective["masks"] else None):
         if tensor is None:
             digest.update(b"none")
             continue
-        array = np.ascontiguousarray(tensor.detach().cpu().numpy())  # a memory-mapped stack is read, not copied twice
-        digest.update(f"{array.dtype}{array.shape}".encode())
-        digest.update(memoryview(array).cast("B"))
+        digest.update(f"{tensor.dtype}{tuple(tensor.shape)}".encode())
+        for view in tensor:  # a view at a time: a stack that is not one contiguous array is copied a view at a time
+            digest.update(memoryview(np.ascontiguousarray(view.detach().cpu().numpy())).cast("B"))
     return digest.hexdigest()
 
 
@@ -202,7 +216,9 @@ def triangulate_views_once(views: Views, *, masks: bool = True, cache_dir: str |
     """:func:`triangulate_views`, its points kept in ``cache_dir/triangulated`` (None: ``NERF_LIGHTNING_CACHE``,
     default ~/.cache/nerf_lightning) under a digest of the views and settings (:func:`views_digest`), so that the
     runs after the first on the same training views (a sweep, a run started again) load them instead of matching
-    again. The report of a loaded run is the first run's, with ``cached`` set to the file it came from."""
+    again. The report of a loaded run is the first run's, with ``cached`` set to the file it came from. The cache
+    never stops a run: a file that cannot be read is made again, one that cannot be written is not kept, each
+    after one warning."""
     masks = masks and views.masks is not None
     folder = Path(cache_dir or default_cache()) / "triangulated"
     path = folder / f"{views_digest(views, {'masks': masks, **settings})}.npz"
@@ -212,17 +228,22 @@ def triangulate_views_once(views: Views, *, masks: bool = True, cache_dir: str |
                 points = SparsePoints.mapped(stored["positions"], stored["colours"])
                 report = json.loads(str(stored["report"]))
             return points, {**report, "cached": str(path)}
-        except (OSError, ValueError, KeyError) as error:  # a damaged file: made again below, and replaced
-            log.warning("the cached sparse points %s could not be read (%s); triangulating again", path, error)
+        except Exception as error:  # noqa: BLE001 - a damaged file (empty, cut short: EOFError, BadZipFile, ...) is made again
+            log.warning("the cached sparse points %s could not be read (%s: %s); triangulating again", path, type(error).__name__, error)
     points, report = triangulate_views(views, masks=masks, **settings)
-    folder.mkdir(parents=True, exist_ok=True)
-    handle, name = tempfile.mkstemp(dir=folder, prefix=f".{path.stem}.", suffix=".npz")
-    staging = Path(name)
     try:
-        with os.fdopen(handle, "wb") as file:
-            np.savez(file, positions=points.positions.numpy(), colours=points.colours.numpy(), report=json.dumps(report, default=plain))
-        staging.chmod(0o644)  # as a file written plainly would be (mkstemp's are the owner's alone)
-        os.replace(staging, path)  # whole or not at all, whichever process finishes last
-    finally:
-        staging.unlink(missing_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
+        handle, name = tempfile.mkstemp(dir=folder, prefix=f".{path.stem}.", suffix=".npz")
+        staging = Path(name)
+        try:
+            with os.fdopen(handle, "wb") as file:
+                np.savez(file, positions=points.positions.numpy(), colours=points.colours.numpy(),
+                         report=json.dumps(report, default=plain))
+                file.flush()
+                os.fsync(file.fileno())  # on disk before it takes the name: a crash leaves the old file or none
+            os.replace(staging, path)  # whole or not at all, whichever process finishes last
+        finally:
+            staging.unlink(missing_ok=True)
+    except OSError as error:  # a full disk, a read-only home: this run goes on, the next triangulates again
+        log.warning("the sparse points could not be kept in %s (%s); the next run on these views triangulates them again", folder, error)
     return points, report

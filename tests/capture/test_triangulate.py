@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -141,10 +142,12 @@ def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_w
 
 def test_the_points_are_triangulated_once_for_the_same_views_and_again_for_any_change(procedural_scene, tmp_path, monkeypatch, caplog):
     """A sweep or a run started again on the same training views loads the points the first run triangulated; views
-    that differ in a pixel, a mask or a pose, or another setting, are triangulated again; a damaged cache file is
-    replaced after one warning."""
+    that differ in a pixel, a mask pixel or a pose, or another setting, are triangulated again (a default passed as
+    it is is the same setting); a damaged cache file is made again and one that cannot be written is not kept, each
+    after one warning, and the run goes on. Keying needs no pycolmap (here it is hidden: the triangulation is a fake)."""
     import nerf_lightning.capture.triangulate as triangulate
 
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # import pycolmap now fails, as without the colmap extra
     calls = []
 
     def fake(views, **settings):
@@ -155,7 +158,7 @@ def test_the_points_are_triangulated_once_for_the_same_views_and_again_for_any_c
     monkeypatch.setattr(triangulate, "triangulate_views", fake)
     views = procedural_scene.train
     first, report = triangulate_views_once(views, cache_dir=tmp_path)
-    again, cached = triangulate_views_once(views, cache_dir=tmp_path)
+    again, cached = triangulate_views_once(views, cache_dir=tmp_path, max_features=8192, progress=True)
     assert len(calls) == 1 and "cached" not in report and cached["cached"].startswith(str(tmp_path / "triangulated"))
     assert torch.equal(again.positions, first.positions) and torch.equal(again.colours, first.colours)
     assert cached["points"] == len(views) and cached["seconds"] == {"features": 2.0} and cached["mean_reprojection_error_px"] == 0.25
@@ -169,15 +172,33 @@ def test_the_points_are_triangulated_once_for_the_same_views_and_again_for_any_c
         assert len(calls) == count + 1 and "cached" not in report
     triangulate_views_once(views, cache_dir=tmp_path, max_features=1024)
     assert len(calls) == 4 and calls[-1] == {"masks": False, "max_features": 1024}
-    # the views' masks count where they are used
-    masked = dataclasses.replace(views, masks=torch.ones(len(views), views.height, views.width, dtype=torch.bool))
+    # the views' masks count where they are used, to the pixel
+    masks = torch.ones(len(views), views.height, views.width, dtype=torch.bool)
+    masked = dataclasses.replace(views, masks=masks)
     triangulate_views_once(masked, cache_dir=tmp_path)
     triangulate_views_once(masked, cache_dir=tmp_path, masks=False)
     assert len(calls) == 5  # without its masks, the masked capture is the one cached first
-    (path,) = [path for path in (tmp_path / "triangulated").iterdir() if path.name.startswith(Path(cached["cached"]).stem)]
-    path.write_bytes(b"not an npz")
-    with caplog.at_level(logging.WARNING, logger="nerf_lightning.capture.triangulate"):
-        points, report = triangulate_views_once(views, cache_dir=tmp_path)
-    assert len(calls) == 6 and "could not be read" in caplog.text and str(path) in caplog.text
-    assert torch.equal(triangulate_views_once(views, cache_dir=tmp_path)[0].colours, points.colours) and len(calls) == 6
+    masks = masks.clone()
+    masks[2, 10, 10] = False
+    triangulate_views_once(dataclasses.replace(views, masks=masks), cache_dir=tmp_path)
+    assert len(calls) == 6
+    # damaged files: not an npz, empty, cut short
+    (path,) = [path for path in (tmp_path / "triangulated").iterdir() if path.name == Path(cached["cached"]).name]
+    whole = path.read_bytes()
+    for damaged in (b"not an npz", b"", whole[: len(whole) // 2]):
+        path.write_bytes(damaged)
+        count = len(calls)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="nerf_lightning.capture.triangulate"):
+            points, report = triangulate_views_once(views, cache_dir=tmp_path)
+        assert len(calls) == count + 1 and "could not be read" in caplog.text and str(path) in caplog.text
+        assert "cached" not in report and triangulate_views_once(views, cache_dir=tmp_path)[1]["cached"] == str(path)
+        assert len(calls) == count + 1
     assert not [path for path in (tmp_path / "triangulated").iterdir() if path.name.startswith(".")]  # no staging file left
+    # a cache that cannot be written: the points still come back
+    blocked = tmp_path / "a file, not a folder"
+    blocked.write_text("")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="nerf_lightning.capture.triangulate"):
+        points, report = triangulate_views_once(views, cache_dir=blocked)
+    assert "could not be kept" in caplog.text and torch.equal(points.positions, first.positions) and "cached" not in report

@@ -19,9 +19,9 @@ import contextlib
 import hashlib
 import importlib.metadata
 import inspect
+import io
 import json
 import logging
-import os
 import tempfile
 import time
 from pathlib import Path
@@ -36,7 +36,7 @@ from nerf_lightning.capture.retrieval import nearest_pairs
 from nerf_lightning.data.formats.shared import default_cache
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.scene import Views
-from nerf_lightning.io import write_png
+from nerf_lightning.io import write_atomic, write_png
 
 log = logging.getLogger(__name__)
 
@@ -231,19 +231,10 @@ def triangulate_views_once(views: Views, *, masks: bool = True, cache_dir: str |
         except Exception as error:  # noqa: BLE001 - a damaged file (empty, cut short: EOFError, BadZipFile, ...) is made again
             log.warning("the cached sparse points %s could not be read (%s: %s); triangulating again", path, type(error).__name__, error)
     points, report = triangulate_views(views, masks=masks, **settings)
+    stored = io.BytesIO()
+    np.savez(stored, positions=points.positions.numpy(), colours=points.colours.numpy(), report=json.dumps(report, default=plain))
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        handle, name = tempfile.mkstemp(dir=folder, prefix=f".{path.stem}.", suffix=".npz")
-        staging = Path(name)
-        try:
-            with os.fdopen(handle, "wb") as file:
-                np.savez(file, positions=points.positions.numpy(), colours=points.colours.numpy(),
-                         report=json.dumps(report, default=plain))
-                file.flush()
-                os.fsync(file.fileno())  # on disk before it takes the name: a crash leaves the old file or none
-            os.replace(staging, path)  # whole or not at all, whichever process finishes last
-        finally:
-            staging.unlink(missing_ok=True)
+        write_atomic(path, stored.getvalue())  # whole or not at all, whichever process finishes last
     except OSError as error:  # a full disk, a read-only home: this run goes on, the next triangulates again
         log.warning("the sparse points could not be kept in %s (%s); the next run on these views triangulates them again", folder, error)
     return points, report

@@ -46,6 +46,9 @@ def main() -> None:
     parser.add_argument("--preset", default="fast_blender", help="an experiment preset (default fast_blender)")
     parser.add_argument("--root", type=Path, default=None, help="data.root (default: the preset's scene in ../shared/data)")
     parser.add_argument("--steps", type=int, default=100, help="steps timed after the warm-up (default 100)")
+    parser.add_argument("--count-operators", action="store_true",
+                        help="count the PyTorch operators each timed step dispatches (nerf_lightning.bench.operators), not "
+                             "its time: the counting slows the steps, so the times of such a run are not reported")
     add_common_arguments(parser, warmup=10, repeats=None)
     parser.add_argument("overrides", nargs="*", help="more Hydra overrides, after --")
     args = parser.parse_args()
@@ -55,7 +58,11 @@ def main() -> None:
     seed_everything(args.seed)
 
     with tempfile.TemporaryDirectory(prefix="bench_train_step_") as run_dir:
-        timings = Path(run_dir) / "step_seconds.json"
+        timings, operators = Path(run_dir) / "step_seconds.json", Path(run_dir) / "operators.json"
+        counter = [] if not args.count_operators else [
+            "+callbacks.operators._target_=nerf_lightning.bench.operators.StepOperatorCounter",
+            f"+callbacks.operators.first={args.warmup + 1}", f"+callbacks.operators.last={args.warmup + args.steps}",
+            f"+callbacks.operators.path='{operators}'"]
         overrides = [
             f"trainer.max_steps={args.warmup + args.steps}", "data.val_every=null", "data.val_steps=[]",
             "++trainer.limit_val_batches=0", "++trainer.num_sanity_val_steps=0", "trainer.max_time=null",
@@ -64,11 +71,12 @@ def main() -> None:
             f"seed={args.seed}", *accelerator_overrides(args.device),
             "+callbacks.step_timer._target_=nerf_lightning.bench.micro.StepTimer",
             f"+callbacks.step_timer.warmup_steps={args.warmup}", f"+callbacks.step_timer.path='{timings}'",
-            *args.overrides,
+            *counter, *args.overrides,
         ]
         cfg, root = compose_preset(args.preset, overrides, args.root, output_dir=run_dir)
         metrics = train(cfg)
         timed = json.loads(timings.read_text())
+        counted = json.loads(operators.read_text()) if args.count_operators else None
 
     step, loop = summarize(timed["step_s"]), summarize(timed["loop_s"])
     batch_size = cfg.data.get("batch_size")  # rays a step; a model of Gaussians draws whole views (data=views), which have none
@@ -82,6 +90,12 @@ def main() -> None:
         "samples_per_ray": metrics.get("train/samples_per_ray"), "final_train_loss": metrics.get("train/loss"),
         "step": step, "loop": loop,
     }
+    if counted is not None:
+        result.update(step=None, loop=None, rays_per_second=None, rays_per_second_loop=None, operators=counted)
+        finish(result, args.out)
+        top = ", ".join(f"{count:g} {name}" for name, count in list(counted["per_step"].items())[:8])
+        print(f"{args.preset}: {counted['total']:g} operators a step over {counted['steps']} steps ({top}, ...)", file=sys.stderr)
+        return
     finish(result, args.out)
     rays = f", {result['rays_per_second']:,.0f} rays/s" if batch_size else ""
     print(f"{args.preset}: {1000 * step['median_s']:.1f} ms a step (median; mean {1000 * step['mean_s']:.1f} ms, "

@@ -101,12 +101,21 @@ class FieldModule(L.LightningModule):
         optimizers = self._trainer.optimizers if self._trainer is not None else []
         return replace_parameter(owner, name, value, optimizers, rows_from)
 
+    def logs_this_step(self) -> bool:
+        """Whether the logger writes this training step's values (global_step counts the steps before this one; the
+        logger, the progress bar and the PSNR history look after the optimiser step, one higher): what only they read
+        need be made only then."""
+        trainer = self._trainer
+        if trainer is None:
+            return True
+        step = self.global_step + 1
+        return step % max(trainer.log_every_n_steps, 1) == 0 or (trainer.max_steps is not None and step >= trainer.max_steps > 0)
+
     def on_before_backward(self, loss: torch.Tensor) -> None:
-        # on a GPU only at the steps that log, which read values back anyway (global_step counts the steps before
-        # this one; the logger, the progress bar and the PSNR history look after the optimiser step, one higher)
-        if self.device.type != "cpu" and (self.global_step + 1) % max(self.trainer.log_every_n_steps, 1) != 0:
+        # on a GPU only at the steps that log, which read values back anyway
+        if self.device.type != "cpu" and not self.logs_this_step():
             return
-        if not bool(torch.isfinite(loss.detach())):
+        if not math.isfinite(loss.detach().item()):  # one read of the value, not the four operators of isfinite
             raise NonFiniteLossError(
                 f"step {self.global_step}: the training loss is {float(loss.detach())}; the run stops here and its last checkpoint keeps "
                 "the last finite weights. A lower model.optimizer.lr usually helps: start a new run with it (resuming restores "

@@ -9,6 +9,7 @@ the Gaussians from the screen-space gradients.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -24,11 +25,12 @@ from nerf_lightning.devices import memory_of
 from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss, ssim_map
+from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
 from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
+from nerf_lightning.splats.loss import photometric_loss
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS
 from nerf_lightning.splats.rasterizers import AUTO, TILES, check_rasterizer, choose_rasterizer, rasterize_view
@@ -285,15 +287,21 @@ class SplatModule(SceneModule):
             return self.gaussians.sh_degree
         return min(self.global_step // max(self.sh_degree_interval, 1), self.gaussians.sh_degree)
 
+    def numba_draws(self) -> bool:
+        """Whether numba's loops draw on this model's device (``model.rasterizer``'s choice: ``tiles`` on a CPU): then
+        the projection and colours, and the training loss, take their fused numba paths too."""
+        return choose_rasterizer(self.device.type, self.rasterizer) == TILES
+
     def draw(self, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
-             background: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], Projection]:
+             background: torch.Tensor | None = None, depth: bool = True) -> tuple[dict[str, torch.Tensor], Projection]:
         """K (3, 3), OpenCV c2w (4, 4) -> rgb (H, W, 3), depth (H, W) (distance along the pixels' unit rays, as the
-        NeRF renderers measure it), accumulation (H, W), and the :class:`Projection` (for the strategy)."""
+        NeRF renderers measure it; left out without ``depth``: a training step does not read it), accumulation
+        (H, W), and the :class:`Projection` (for the strategy)."""
         g = self.gaussians
         K, c2w = K.to(self.device, torch.float32), c2w.to(self.device, torch.float32)
         degree = self.sh_degree()
         learned_camera = torch.is_grad_enabled() and c2w.requires_grad  # camera refinement: the reference's autograd
-        if not learned_camera and choose_rasterizer(self.device.type, self.rasterizer) == TILES:
+        if not learned_camera and self.numba_draws():
             # projection and colour in one numba loop, forward and backward, held equal to the two PyTorch steps
             # below; where tiles draw, numba is there
             from nerf_lightning.splats.projection_fast import project_and_shade
@@ -317,7 +325,10 @@ class SplatModule(SceneModule):
             absgrad = self.training and self.strategy is not None and self.strategy.absgrad
             out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs,
                                  absgrad)
-        out["depth"] = out["depth"] * pixel_ray_lengths(K, height, width)
+        if depth:
+            out["depth"] = out["depth"] * pixel_ray_lengths(K, height, width)
+        else:
+            del out["depth"]
         return out, projection
 
     @torch.no_grad()
@@ -345,7 +356,7 @@ class SplatModule(SceneModule):
             background = torch.rand(3, device=image.device, dtype=image.dtype)
             if "object_mask" in batch:
                 image = composite_background(image, batch["object_mask"], background)
-        out, projection = self.draw(batch["K"], c2w, height, width, background=background)
+        out, projection = self.draw(batch["K"], c2w, height, width, background=background, depth=False)
         if projection.means2d.requires_grad:
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
         # the strategy reads gradients as of a whole view: a patch's loss, a mean over fewer pixels, gives each of its
@@ -360,7 +371,7 @@ class SplatModule(SceneModule):
         if mask is not None:
             rgb = torch.where(mask[..., None], rgb, image)
         with record_function("splats.loss"):
-            loss = self.photometric_loss(rgb, image, mask)
+            loss, mse = self.photometric_loss(rgb, image, mask)
         if self.mask_loss:
             mask_term = self.mask_loss * opacity_mask_loss(out["accumulation"], masks_for_mask_loss(batch))
             loss = loss + mask_term
@@ -375,20 +386,21 @@ class SplatModule(SceneModule):
                 loss = loss + penalty
                 self.log(f"train/loss_{name}", penalty.detach(), on_step=True, on_epoch=False)
         self.log("train/loss", loss, on_step=True, on_epoch=False)
-        self.log("train/psnr", mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)), on_step=True)
-        self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
+        if self.logs_this_step():  # what only the logger reads, made when it writes (each is a launch or more a step)
+            psnr = mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)) if mse is None else -10.0 * math.log10(max(mse, 1e-30))
+            self.log("train/psnr", psnr, on_step=True)
+            self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
         return loss
 
-    def photometric_loss(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-        """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given."""
-        similarity = ssim_map(rgb.permute(2, 0, 1)[None], image.permute(2, 0, 1)[None])  # kornia's, in less time
-        if mask is None:
-            l1, ssim = (rgb - image).abs().mean(), similarity.mean()
-        else:
-            count = mask.sum().clamp(min=1)
-            l1 = ((rgb - image).abs().mean(dim=-1) * mask).sum() / count
-            ssim = (similarity[0].mean(dim=0) * mask).sum() / count
-        return (1.0 - self.ssim_weight) * l1 + self.ssim_weight * (1.0 - ssim)
+    def photometric_loss(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, float | None]:
+        """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given
+        (:func:`~nerf_lightning.splats.loss.photometric_loss`), and the mean squared error where it comes free: in one
+        numba pass where numba draws (:mod:`~nerf_lightning.splats.loss_fast`), else PyTorch's operators and None."""
+        if self.numba_draws() and min(rgb.shape[:2]) > 5:
+            from nerf_lightning.splats.loss_fast import photometric_loss_fast
+
+            return photometric_loss_fast(rgb, image, self.ssim_weight, mask)
+        return photometric_loss(rgb, image, self.ssim_weight, mask), None
 
     def on_after_backward(self) -> None:
         if self.strategy is not None and self._drawn is not None:

@@ -392,7 +392,10 @@ class ProjectAndShade(torch.autograd.Function):
         # computed in float64, rounded once as written. Allocated by torch, not numpy: numpy asks the kernel for huge
         # pages for large arrays, and where the kernel compacts memory to find them (transparent huge pages with
         # defrag=madvise) the loop's first writes into these Gaussian-sized arrays stall on it, every step
-        grads = [torch.zeros(array.shape, dtype=torch_dtype) for array in arrays]
+        # (one zero fill for all six, cut into views: one operator, not six)
+        sizes = [array.size for array in arrays]
+        flat = torch.zeros(sum(sizes), dtype=torch_dtype)
+        grads = [part.view(array.shape) for part, array in zip(flat.split(sizes), arrays, strict=True)]
         project_and_shade_backward_loop(*arrays, degree, camera, height, width, antialiased, ids, grad_footprints,
                                         grad_colours, *(grad.numpy() for grad in grads))
         grads[5] = grads[5][:, : shN_shape[1]]  # shN without higher bands: its own empty shape back

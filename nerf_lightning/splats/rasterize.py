@@ -107,15 +107,16 @@ def shaded_view(shaded: torch.Tensor, accumulation: torch.Tensor, background: to
 
 
 def composite_features(composite, projection: Projection, colours: torch.Tensor, height: int, width: int,
-                       background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
+                       background: torch.Tensor, absgrad: bool = False, boxes=pixel_boxes) -> dict[str, torch.Tensor]:
     """Draw a view with a tile rasteriser's autograd function ``composite`` (``TileRasterize.apply``,
     ``TritonRasterize.apply``: means2d, conics, opacities, (M, 4) features, (M, 4) pixel boxes, height, width, and
     the (M, 2) tensor its backward pass fills with the absolute screen-space gradients or None (:func:`keep_absgrad`)
     -> shaded (H, W, 4), accumulation (H, W)), the footprints' features their colours and their depth (the last,
-    which orders them); then :func:`shaded_view`. With ``absgrad``, ``projection.means2d.absgrad`` is kept."""
-    boxes = pixel_boxes(projection, height, width)
+    which orders them); then :func:`shaded_view`. With ``absgrad``, ``projection.means2d.absgrad`` is kept.
+    ``boxes`` is what gives the pixel boxes, :func:`pixel_boxes` or a fast path's equal of it."""
     features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
-    shaded, accumulation = composite(projection.means2d, projection.conics, projection.opacities, features, boxes,
+    shaded, accumulation = composite(projection.means2d, projection.conics, projection.opacities, features,
+                                     boxes(projection, height, width),
                                      height, width, keep_absgrad(projection.means2d, absgrad))
     return shaded_view(shaded, accumulation, background)
 

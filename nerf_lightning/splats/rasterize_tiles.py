@@ -335,6 +335,26 @@ def _numpy(tensor: torch.Tensor) -> np.ndarray:
     return tensor.detach().contiguous().numpy()
 
 
+@numba.njit(cache=True)
+def pixel_boxes_loop(means2d, extents, half, height, width, boxes):
+    """:func:`~nerf_lightning.splats.rasterize.pixel_boxes` of (M, 2) means2d and extents into ``boxes`` (M, 4)
+    int64, in the inputs' precision as PyTorch computes it (``half``: a one-element array of 0.5 in their dtype)."""
+    for i in range(means2d.shape[0]):
+        for axis, size in ((0, width), (1, height)):
+            low = np.ceil(means2d[i, axis] - extents[i, axis] - half[0])
+            high = np.floor(means2d[i, axis] + extents[i, axis] - half[0])
+            boxes[i, 2 * axis] = min(max(int(low), 0), size)
+            boxes[i, 2 * axis + 1] = min(max(int(high), -1), size - 1)
+
+
+def pixel_boxes(projection: Projection, height: int, width: int) -> torch.Tensor:
+    """:func:`~nerf_lightning.splats.rasterize.pixel_boxes` in one numba loop (seventeen tensor operators there)."""
+    means2d, extents = _numpy(projection.means2d), _numpy(projection.extents)
+    boxes = torch.empty((len(means2d), 4), dtype=torch.int64)
+    pixel_boxes_loop(means2d, extents, np.full(1, 0.5, means2d.dtype), height, width, boxes.numpy())
+    return boxes
+
+
 class TileRasterize(torch.autograd.Function):
     """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, 4) features -> (H, W, 4) weighted feature sums and (H, W)
     accumulation, differentiable in the four inputs; on CPU tensors. The last feature is the depth the footprints are
@@ -386,4 +406,4 @@ def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, 
     something is drawn), accumulation (H, W); ``background`` (3,). CPU tensors; differentiable in the footprints and
     colours (and the background); with ``absgrad``, the backward pass fills ``projection.means2d.absgrad``
     (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
-    return composite_features(TileRasterize.apply, projection, colours, height, width, background, absgrad)
+    return composite_features(TileRasterize.apply, projection, colours, height, width, background, absgrad, pixel_boxes)

@@ -239,7 +239,7 @@ def test_an_exclude_mask_keeps_the_pixels_outside_it_out_of_the_loss(make_config
     model = instantiate(make_config(*QUICK).model)
     model.log = lambda *args, **kwargs: None
     rendered = torch.rand(32, 32, 3, requires_grad=True)  # what the splats drew, standing in for the rasteriser
-    model.draw = lambda K, c2w, height, width, background=None: ({"rgb": rendered}, SimpleNamespace(means2d=torch.zeros(1, 2)))
+    model.draw = lambda K, c2w, height, width, background=None, depth=True: ({"rgb": rendered}, SimpleNamespace(means2d=torch.zeros(1, 2)))
     mask = torch.zeros(32, 32, dtype=torch.bool)
     mask[8:24, 8:24] = True
     model.training_step({"image": torch.rand(32, 32, 3), "K": None, "c2w": None, "loss_mask": mask}, 0).backward()
@@ -261,13 +261,13 @@ def test_a_random_training_background_is_behind_the_gaussians_and_outside_the_ob
     model.log = lambda *args, **kwargs: None
     drawn_over = []
 
-    def draw(K, c2w, height, width, background=None):
+    def draw(K, c2w, height, width, background=None, depth=True):
         drawn_over.append(background)
         return {"rgb": torch.full((32, 32, 3), 0.5, requires_grad=True)}, SimpleNamespace(means2d=torch.zeros(1, 2))
 
     model.draw = draw
     seen = []
-    model.photometric_loss = lambda rgb, image, mask: seen.append(image) or (rgb - image).abs().mean()
+    model.photometric_loss = lambda rgb, image, mask: seen.append(image) or ((rgb - image).abs().mean(), None)
     mask = torch.zeros(32, 32, dtype=torch.bool)
     mask[8:24, 8:24] = True
     image = torch.rand(32, 32, 3) * mask[..., None]  # the object over black, as data.masks=background gives it
@@ -295,9 +295,9 @@ def test_the_mask_loss_teaches_the_gaussians_opacity_from_the_masks(make_config,
     mask[8:24, 8:24] = True
     image = torch.zeros(32, 32, 3)  # a black object over the black background: the colours cannot tell them apart
     accumulation = torch.full((32, 32), 0.5, requires_grad=True)
-    model.draw = lambda K, c2w, height, width, background=None: (
+    model.draw = lambda K, c2w, height, width, background=None, depth=True: (
         {"rgb": torch.zeros(32, 32, 3, requires_grad=True), "accumulation": accumulation}, SimpleNamespace(means2d=torch.zeros(1, 2)))
-    model.photometric_loss = lambda rgb, image, mask: (rgb - image).abs().mean()
+    model.photometric_loss = lambda rgb, image, mask: ((rgb - image).abs().mean(), None)
     loss = model.training_step({"image": image, "K": None, "c2w": None, "object_mask": mask}, 0)
     assert float(loss) == pytest.approx(0.5 * math.log(2.0), rel=1e-4)  # the colours match: all of it is the masks'
     loss.backward()

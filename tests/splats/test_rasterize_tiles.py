@@ -282,3 +282,20 @@ def test_absgrad_adds_up_over_backward_passes_as_gradients_do(rasteriser):
     loss.backward()
     assert once.max() > 0
     torch.testing.assert_close(out["means2d"].absgrad, 2 * once)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_numba_pixel_boxes_are_the_references_to_the_pixel(dtype):
+    from nerf_lightning.splats.rasterize import pixel_boxes
+    from nerf_lightning.splats.rasterize_tiles import pixel_boxes as pixel_boxes_fast
+
+    generator = torch.Generator().manual_seed(0)
+    count = 20_000
+    means2d = torch.rand(count, 2, generator=generator, dtype=dtype) * 160 - 30  # off every border too
+    extents = torch.rand(count, 2, generator=generator, dtype=dtype) * 12
+    # centres on pixel edges and whole extents: where ceil and floor decide a box's first and last pixel
+    means2d[:2000] = torch.randint(-6, 40, (2000, 2), generator=generator).to(dtype) + 0.5
+    extents[:1000] = torch.randint(0, 5, (1000, 2), generator=generator).to(dtype)
+    projection = Projection(torch.arange(count), means2d, torch.zeros(count, 3, dtype=dtype), torch.zeros(count, dtype=dtype),
+                            torch.zeros(count, dtype=dtype), extents)
+    assert torch.equal(pixel_boxes_fast(projection, 90, 120), pixel_boxes(projection, 90, 120))

@@ -160,6 +160,9 @@ def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust:
     model.on_load_checkpoint(checkpoint)
     model.load_state_dict(checkpoint["state_dict"])
     model.eval()
+    device_for = getattr(model, "device_for", None)  # a model may draw elsewhere than auto chose (splats: not an Apple GPU)
+    if device_for is not None:
+        target = device_for(target, asked=str(device).strip().lower() not in ("auto", "none"))
     model.to(target)
     return model, {"kind": info["kind"], "config": config, "global_step": checkpoint.get("global_step")}
 

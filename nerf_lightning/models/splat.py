@@ -33,7 +33,7 @@ from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.loss import photometric_loss
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS
-from nerf_lightning.splats.rasterizers import AUTO, TILES, check_rasterizer, choose_rasterizer, rasterize_view
+from nerf_lightning.splats.rasterizers import AUTO, TILES, check_rasterizer, choose_rasterizer, device_for_splats, rasterize_view
 from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
 from nerf_lightning.splats.start import points_in_visual_hull, points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
@@ -286,6 +286,12 @@ class SplatModule(SceneModule):
         if not self.training:
             return self.gaussians.sh_degree
         return min(self.global_step // max(self.sh_degree_interval, 1), self.gaussians.sh_degree)
+
+    @staticmethod
+    def device_for(device: torch.device | str, asked: bool) -> torch.device:
+        """Where this model trains and draws when ``device`` was chosen (``asked``: by name, not ``auto``): the CPU's
+        tiles in place of an Apple GPU not asked for (:func:`~nerf_lightning.splats.rasterizers.device_for_splats`)."""
+        return device_for_splats(device, asked)
 
     def numba_draws(self) -> bool:
         """Whether numba's loops draw on this model's device (``model.rasterizer``'s choice: ``tiles`` on a CPU): then

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nerf_lightning.training.callbacks import RunConfigInCheckpoint, StepProgressBar
 from nerf_lightning.checkpoints import checkpoint_globals, read_checkpoint
-from nerf_lightning.devices import enable_tf32, peak_memory_gb
+from nerf_lightning.devices import enable_tf32, peak_memory_gb, resolve_device
 from nerf_lightning.errors import ensure_writable
 from nerf_lightning.io import write_json
 
@@ -23,6 +23,17 @@ warnings.filterwarnings("ignore", ".*does not have many workers.*")
 warnings.filterwarnings("ignore", r".*isinstance\(treespec, LeafSpec\).*")
 # Lightning's adverts for its cloud services (litlogger, litmodels) on every run; it has no switch for them (Lightning-AI/pytorch-lightning#21294)
 logging.getLogger("lightning.pytorch.utilities.rank_zero").addFilter(lambda record: "💡 Tip" not in record.getMessage())
+
+
+def accelerator_for(cfg: DictConfig, model: Any) -> dict[str, Any]:
+    """What the trainer's ``accelerator`` (and ``devices``) becomes where the model trains elsewhere than
+    ``trainer.accelerator=auto`` would put it (a model's ``device_for``: splats not on an Apple GPU); {} otherwise."""
+    device_for = getattr(model, "device_for", None)
+    if device_for is None or str(cfg.trainer.get("accelerator", "auto")) != "auto":
+        return {}
+    chosen = resolve_device("auto")
+    moved = device_for(chosen, asked=False)
+    return {} if moved == chosen else {"accelerator": moved.type, "devices": 1}
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
@@ -45,7 +56,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if cfg.trainer.get("enable_progress_bar", True):
         callbacks.append(StepProgressBar())
     loggers = [instantiate(logger) for logger in (cfg.get("logger") or {}).values()]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False, **accelerator_for(cfg, model))
 
     started = time.perf_counter()
     with checkpoint_globals():  # Lightning reads the checkpoint again: as strictly as we did

@@ -304,3 +304,32 @@ def test_the_mask_loss_teaches_the_gaussians_opacity_from_the_masks(make_config,
     assert (accumulation.grad[mask] < 0).all() and (accumulation.grad[~mask] > 0).all()  # opaque on the object, clear off it
     with pytest.raises(ValueError, match="model.mask_loss > 0 needs the object's masks .* data.masks=background"):
         model.training_step({"image": image, "K": None, "c2w": None}, 0)
+
+
+def test_splats_train_and_draw_on_the_cpus_tiles_where_auto_would_pick_an_apple_gpu(make_config, scene_cache, monkeypatch, caplog):
+    from omegaconf import OmegaConf
+
+    from nerf_lightning.checkpoints import load_model
+    from nerf_lightning.models.radiance_field import RadianceFieldModule
+    from nerf_lightning.models.splat import SplatModule
+    from nerf_lightning.splats.rasterizers import device_for_splats
+    from nerf_lightning.training.run import accelerator_for
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    cfg = make_config(*QUICK, "trainer.max_steps=2", "data.val_every=null", "trainer.enable_model_summary=false")
+    train(cfg)  # on this machine's CPU, before the Apple GPU is faked
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)  # a Mac: auto is its Apple GPU
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with caplog.at_level("WARNING", logger="nerf_lightning.splats.rasterizers"):
+        assert device_for_splats("mps", asked=False) == torch.device("cpu")
+    assert sum("not this Apple GPU" in record.getMessage() for record in caplog.records) == 1
+    assert device_for_splats("mps", asked=True) == torch.device("mps")  # asked for by name: it gets it
+    assert device_for_splats("cuda", asked=False) == torch.device("cuda")
+    # training: auto becomes the CPU for splats, not for a NeRF; an accelerator named stays
+    model = SplatModule(gaussians=Gaussians(sh_degree=0), optimizer=torch.optim.Adam, learning_rates=dict.fromkeys(PARAMETERS, 1e-3))
+    assert accelerator_for(cfg, model) == {"accelerator": "cpu", "devices": 1}
+    assert accelerator_for(OmegaConf.merge(cfg, {"trainer": {"accelerator": "mps"}}), model) == {}
+    assert accelerator_for(cfg, object.__new__(RadianceFieldModule)) == {}
+    # the commands: device=auto loads the splats on the CPU
+    loaded, _ = load_model(f"{cfg.paths.output_dir}/checkpoints/last.ckpt", device="auto")
+    assert loaded.device.type == "cpu"

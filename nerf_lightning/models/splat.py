@@ -18,6 +18,7 @@ from torch.profiler import record_function
 
 from nerf_lightning.capture.choices import COLMAP_EXTRA
 from nerf_lightning.data.batches import ViewBatch
+from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.views import ViewDataModule
@@ -158,6 +159,8 @@ class SplatModule(SceneModule):
             self.strategy.scene_scale = float(self.scene_scale)
             train = datamodule.scene.train
             self.strategy.cameras = (train.K, train.c2w, train.height, train.width)
+            if hasattr(self.strategy, "score_views"):  # a strategy that asks how the Gaussians draw in sampled views
+                self.strategy.score_views = self.view_scores
         if len(self.gaussians) == 0 and not getattr(self.trainer, "ckpt_path", None):  # a resumed run's come from its checkpoint
             self.start_gaussians(datamodule.scene, getattr(datamodule, "mask_mode", None))
         self.check_memory(self.trainer.strategy.root_device)
@@ -336,6 +339,38 @@ class SplatModule(SceneModule):
         else:
             del out["depth"]
         return out, projection
+
+    @torch.no_grad()
+    def view_scores(self, views: torch.Tensor, error_threshold: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Training views ``views`` (V,) -> for each Gaussian (N,) the mean over them of its blend weights on each
+        view's high-error pixels (whose L1 error, the mean over the colours, exceeds ``error_threshold`` of the view's
+        largest), (N,) the same on all their pixels, and (N,) bool whether any of them draws it at all.
+
+        A Gaussian's blend weights summed over a set of pixels are the gradient, in its colour, of the rendered colours
+        summed over them: each view is drawn once to find its errors, then once more with every colour 1 and
+        backpropagated (the high-error pixels' sum through the red channel, every pixel's through the green)."""
+        train = self.trainer.datamodule.scene.train
+        was_training = self.training
+        self.eval()  # drawn as a held-out view is (no absgrad kept); the bands not yet reached are still zero
+        n = len(self.gaussians)
+        high, drawn = torch.zeros(n, device=self.device), torch.zeros(n, device=self.device)
+        seen = torch.zeros(n, dtype=torch.bool, device=self.device)
+        for index in views.tolist():
+            image = as_float_rgb(train.images[index]).to(self.device)
+            out, projection = self.draw(train.K[index], train.c2w[index], train.height, train.width, depth=False)
+            error = (out["rgb"] - image).abs().mean(dim=-1)
+            errors = (error > error_threshold * error.max()).to(error.dtype)
+            footprints = Projection(*(value.detach() for value in projection))
+            with torch.enable_grad():
+                ones = torch.ones(len(footprints.ids), 3, device=self.device, requires_grad=True)
+                rgb = rasterize_view(footprints, ones, train.height, train.width, torch.zeros(3, device=self.device),
+                                     self.rasterizer, self.max_pairs)["rgb"]
+                ((rgb[..., 0] * errors).sum() + rgb[..., 1].sum()).backward()
+            high.index_add_(0, footprints.ids, ones.grad[:, 0])
+            drawn.index_add_(0, footprints.ids, ones.grad[:, 1])
+            seen[footprints.ids] = True
+        self.train(was_training)
+        return high / len(views), drawn / len(views), seen
 
     @torch.no_grad()
     def render_view(self, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,

@@ -14,8 +14,8 @@ The interface a splat model calls:
   means at learning rate ``means_lr`` (MCMC scales its noise by it): refine if it is time.
 - ``loss(gaussians)``: a regulariser the model adds to its loss (MCMC's), or None.
 
-Two strategies: :class:`DefaultStrategy` (3DGS's adaptive density control) and :class:`MCMCStrategy` (3DGS as
-Markov chain Monte Carlo). Their accumulated statistics and random state are not kept in checkpoints (gsplat's
+Three strategies: :class:`DefaultStrategy` (3DGS's adaptive density control), :class:`ViewConsistentStrategy` (the
+same where the views agree: FastGS's) and :class:`MCMCStrategy` (3DGS as Markov chain Monte Carlo). Their accumulated statistics and random state are not kept in checkpoints (gsplat's
 neither): a resumed run starts them afresh at its next refinement interval.
 """
 
@@ -123,7 +123,7 @@ class DefaultStrategy:
         values = {name: getattr(gaussians, name).detach() for name in PARAMETERS}
         largest = torch.exp(values["log_scales"]).amax(dim=-1)
         mean_grad = self.grad_sum / self.seen.clamp(min=1)
-        grow = mean_grad > self.grow_grad2d
+        grow = self.growing(mean_grad)
         room = max(self.max_count - n, 0)
         if int(grow.sum()) > room:  # over the cap: the largest gradients grow (a split adds one, a clone one)
             keep = mean_grad.masked_fill(~grow, -1).topk(room).indices
@@ -150,12 +150,21 @@ class DefaultStrategy:
         if step > self.prune_large_after:
             prune |= torch.exp(merged["log_scales"]).amax(dim=-1) > self.prune_scale3d * self.scene_scale
         near = self.near_few_cameras(merged["means"]) if self.prune_near_cameras is not None else torch.zeros_like(prune)
-        prune |= near
+        prune |= near | self.pruning(rows_from)
         kept = torch.nonzero(~prune).squeeze(1)
         gaussians.edit({name: value[kept] for name, value in merged.items()}, rows_from[kept], replace)
         log.debug("step %d: %d cloned, %d split, %d pruned (%d near the cameras): %d Gaussians", step, len(cloned), len(halves),
                   int(prune.sum()), int(near.sum()), len(kept))
         self.grad_sum = self.seen = None
+
+    def growing(self, mean_grad: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the Gaussians that grow at this refinement, from their (N,) mean screen-space gradients."""
+        return mean_grad > self.grow_grad2d
+
+    def pruning(self, rows_from: torch.Tensor) -> torch.Tensor:
+        """(N_new,) bool: Gaussians pruned for reasons of a strategy's own, beside opacity, size and the cameras'
+        near field, given each new row's old row (``rows_from``, -1 for a new one); none here."""
+        return torch.zeros(rows_from.shape, dtype=torch.bool, device=rows_from.device)
 
     def near_few_cameras(self, means: torch.Tensor) -> torch.Tensor:
         """(N,) bool: the means within ``prune_near_cameras`` of the scene scale from a training camera's centre that
@@ -179,6 +188,63 @@ class DefaultStrategy:
         logits = gaussians.opacity_logits.detach().clamp(max=inverse_sigmoid(2.0 * self.prune_opacity))
         fresh = torch.full((len(logits),), -1, dtype=torch.long, device=logits.device)  # their optimiser state starts again
         replace(gaussians, "opacity_logits", logits, fresh)
+
+
+class ViewConsistentStrategy(DefaultStrategy):
+    """3DGS's adaptive density control where the views agree (FastGS's multi-view consistent densification and
+    pruning, Ren et al. 2026): a Gaussian grows only where several views find it under their errors, and one that
+    draws almost nothing in any of them goes.
+
+    At each refinement, ``views`` training views drawn at random are rendered; a view's high-error pixels are those
+    whose L1 error (the mean over the colours) exceeds ``error_threshold`` of the view's largest. For each Gaussian the
+    model measures, over those views, the mean of its blend weights on their high-error pixels (``high``, in pixels)
+    and on all their pixels (``drawn``) (``score_views``, set by the splat model when training starts). Then
+
+    - a Gaussian grows where the default strategy would (its mean screen-space gradient over ``grow_grad2d``) and
+      ``high`` is at least ``grow_score``: a large gradient from one view that the others do not share (a floater
+      seen from one side, noise) does not grow;
+    - besides the default strategy's pruning, a Gaussian that some sampled view sees whose ``drawn`` is under
+      ``prune_drawn`` (hidden behind others, or too faint to matter) goes.
+
+    So the count stays near what the pictures need, and a step draws fewer Gaussians. Other arguments: as
+    :class:`DefaultStrategy`'s.
+    """
+
+    def __init__(self, *args, views: int = 10, error_threshold: float = 0.1, grow_score: float = 1.0,
+                 prune_drawn: float = 0.01, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        if views < 1 or not 0.0 <= error_threshold < 1.0 or grow_score < 0.0 or prune_drawn < 0.0:
+            raise ValueError(f"ViewConsistentStrategy needs views >= 1, 0 <= error_threshold < 1, grow_score >= 0 and "
+                             f"prune_drawn >= 0, got {views}, {error_threshold}, {grow_score} and {prune_drawn}")
+        self.views, self.error_threshold, self.grow_score, self.prune_drawn = views, error_threshold, grow_score, prune_drawn
+        # (V,) training view indices, error_threshold -> (N,) high, (N,) drawn, (N,) bool seen: set by the model
+        self.score_views: Callable[[torch.Tensor, float], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None
+        self._scores: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+
+    @torch.no_grad()
+    def refine(self, gaussians: Gaussians, step: int, replace: Replace) -> None:
+        if self.score_views is None or self.cameras is None:
+            raise ValueError("model/strategy=view_consistent needs the training views drawn and scored, which the splat "
+                             "model sets up when training starts")
+        count = len(self.cameras[1])
+        picks = torch.randperm(count, generator=self.generator)[: min(self.views, count)]
+        self._scores = self.score_views(picks, self.error_threshold)
+        try:
+            super().refine(gaussians, step, replace)
+        finally:
+            self._scores = None
+
+    def growing(self, mean_grad: torch.Tensor) -> torch.Tensor:
+        high = self._scores[0].to(mean_grad.device)
+        return super().growing(mean_grad) & (high >= self.grow_score)
+
+    def pruning(self, rows_from: torch.Tensor) -> torch.Tensor:
+        _, drawn, seen = self._scores
+        old = rows_from >= 0  # a new Gaussian (a clone, a split's child) has not been drawn yet
+        faint = torch.zeros(rows_from.shape, dtype=torch.bool, device=rows_from.device)
+        rows = rows_from[old]
+        faint[old] = seen.to(rows.device)[rows] & (drawn.to(rows.device)[rows] < self.prune_drawn)
+        return faint
 
 
 class MCMCStrategy:

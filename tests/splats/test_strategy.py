@@ -297,3 +297,70 @@ def test_a_short_run_with_absgrad_grows_its_gaussians_by_it(make_config, scene_c
                       "model.strategy.grow_grad2d=8.0e-4")
     metrics = train(cfg)  # the model asked the rasteriser for absgrad: without it, after_backward would raise
     assert metrics["step"] == 120 and metrics["train/gaussians"] > 3000, metrics
+
+
+def test_the_view_consistent_strategy_grows_where_the_views_agree_and_prunes_what_they_barely_draw():
+    from nerf_lightning.splats.strategy import ViewConsistentStrategy
+
+    g = gaussians_for(100)
+    with torch.no_grad():
+        g.log_scales[:] = math.log(0.001)  # small: a Gaussian that grows is cloned
+        g.opacity_logits[:] = 2.0  # opaque: none goes for its opacity
+    optimizer, replace = stepped_optimizer(g)
+    strategy = ViewConsistentStrategy(refine_start=0, refine_every=100, grow_score=1.0, prune_drawn=0.01, views=3)
+    strategy.cameras = (torch.eye(3).expand(5, 3, 3), torch.eye(4).expand(5, 4, 4), 8, 8)
+    high, drawn, seen = torch.zeros(100), torch.full((100,), 5.0), torch.ones(100, dtype=torch.bool)
+    high[:20] = 2.0  # the views agree these sit under their errors
+    drawn[90:95] = 0.001  # seen, but drawing almost nothing: pruned
+    seen[95:] = False
+    drawn[95:] = 0.0  # never seen by the views drawn: kept
+    asked = []
+    strategy.score_views = lambda views, threshold: asked.append((views, threshold)) or (high, drawn, seen)
+    means2d = torch.zeros(100, 2, requires_grad=True)
+    means2d.grad = torch.zeros(100, 2)
+    means2d.grad[:10] = 1.0  # a large gradient where the views agree, and where they do not (10 to 19 agree, no gradient)
+    means2d.grad[30:40] = 1.0
+    strategy.after_backward(g, Projection(torch.arange(100), means2d, torch.zeros(100, 3), torch.zeros(100), torch.zeros(100),
+                                          torch.zeros(100, 2)), width=2, height=2)
+    strategy.after_step(g, step=100, replace=replace, means_lr=0.0)
+    (views, threshold), = asked
+    assert len(views) == 3 and len(set(views.tolist())) == 3 and threshold == strategy.error_threshold
+    assert len(g) == 100 + 10 - 5  # ten clones (0 to 9, not 30 to 39), five pruned
+    with pytest.raises(ValueError, match="views >= 1"):
+        ViewConsistentStrategy(views=0)
+
+
+class KeepModule(L.Callback):
+    """Keeps the trained module and its training views when training ends."""
+
+    kept: dict = {}
+
+    def on_train_end(self, trainer, pl_module):
+        KeepModule.kept.update(module=pl_module, views=trainer.datamodule.scene.train)
+
+
+def test_the_splat_models_view_scores_are_the_blend_weights_the_views_draw(make_config, scene_cache, monkeypatch):
+    from nerf_lightning.data.image_stack import as_float_rgb
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    monkeypatch.setattr(KeepModule, "kept", {})
+    cfg = make_config(*QUICK, "model/strategy=view_consistent", "trainer.max_steps=60", "data.val_every=null",
+                      "model.strategy.refine_start=20", "model.strategy.refine_every=20", "model.strategy.views=3",
+                      f"+callbacks.keep._target_={__name__}.KeepModule")
+    metrics = train(cfg)  # refinements at 20 and 40 drew and scored three views each
+    assert metrics["step"] == 60
+    model, views = KeepModule.kept["module"], KeepModule.kept["views"]
+    high, drawn, seen = model.view_scores(torch.tensor([0, 1]), 0.5)
+    # a Gaussian's blend weights summed over pixels, summed over the Gaussians, are the pixels' accumulation
+    model.eval()
+    accumulated = high_accumulated = 0.0
+    with torch.no_grad():
+        for index in (0, 1):
+            out, _ = model.draw(views.K[index], views.c2w[index], views.height, views.width)
+            error = (out["rgb"] - as_float_rgb(views.images[index])).abs().mean(dim=-1)
+            accumulated += float(out["accumulation"].sum()) / 2
+            high_accumulated += float(out["accumulation"][error > 0.5 * error.max()].sum()) / 2
+    assert accumulated > 1.0 and high_accumulated > 0.1
+    assert float(drawn.sum()) == pytest.approx(accumulated, rel=1e-4)
+    assert float(high.sum()) == pytest.approx(high_accumulated, rel=1e-4)
+    assert bool(seen.any()) and float(drawn[~seen].abs().sum()) == 0.0

@@ -106,31 +106,32 @@ def loss_forward(x, y, mask, masked, ssim_weight, window, partials, signs, row_s
         row_sums[i, 0], row_sums[i, 1], row_sums[i, 2] = l1_sum, ssim_sum, squared
 
 
+@numba.njit(inline="always")
+def _blur_transposed(source, window, target):
+    """Adds to ``target`` (n, 3, C) the transpose of the reflect-bordered blur along the first axis applied to
+    ``source`` (n, 3, C): each value spread over the window onto the places it was read from."""
+    size, radius = source.shape[0], window.shape[0] // 2
+    for i in range(size):
+        for k in range(window.shape[0]):
+            ii = _reflect(i + k - radius, size)
+            g = window[k]
+            for m in range(source.shape[1]):
+                for c in range(source.shape[2]):
+                    target[ii, m, c] += g * source[i, m, c]
+
+
 @numba.njit(cache=True, parallel=True)
 def loss_backward(x, y, partials, signs, ssim_weight, window, scale, grad):
     """The gradient of the loss, times ``scale`` (the upstream gradient), into ``grad`` (H, W, C) from what
     :func:`loss_forward` kept: the partials blurred by the transposed blur (columns, then rows), then the chain rule
     through the moments x, x^2 and xy."""
     height, width, channels = x.shape
-    radius = window.shape[0] // 2
     down = np.zeros((height, width, 3, channels), x.dtype)
     for j in numba.prange(width):  # the transpose of the blur along the columns: each output column its own thread's
-        for i in range(height):
-            for k in range(window.shape[0]):
-                ii = _reflect(i + k - radius, height)
-                g = window[k]
-                for m in range(3):
-                    for c in range(channels):
-                        down[ii, j, m, c] += g * partials[i, j, m, c]
+        _blur_transposed(partials[:, j], window, down[:, j])
     for i in numba.prange(height):  # then along the rows, each row its own thread's
         across = np.zeros((width, 3, channels), x.dtype)
-        for j in range(width):
-            for k in range(window.shape[0]):
-                jj = _reflect(j + k - radius, width)
-                g = window[k]
-                for m in range(3):
-                    for c in range(channels):
-                        across[jj, m, c] += g * down[i, j, m, c]
+        _blur_transposed(down[i], window, across)
         for j in range(width):
             for c in range(channels):
                 d_ssim = across[j, 0, c] + 2.0 * x[i, j, c] * across[j, 1, c] + y[i, j, c] * across[j, 2, c]

@@ -49,7 +49,8 @@ class OperatorCount(TorchDispatchMode):
 
 class StepOperatorCounter(L.Callback):
     """Counts the operators of training steps ``first`` to ``last`` (1-based, inclusive): forward, backward, the
-    optimiser's update and the model's own hooks in between. ``per_step`` (name -> mean count a step) and ``total``
+    optimiser's update and the model's hooks in between (not the model's own ``on_train_batch_end``, which Lightning
+    calls after the callbacks': a splat strategy's refinement every so many steps). ``per_step`` (name -> mean count a step) and ``total``
     (the mean a step) when they are done; with ``path``, written there as JSON at the end of training."""
 
     def __init__(self, first: int = 1, last: int = 24, path: str | None = None) -> None:
@@ -81,9 +82,15 @@ class StepOperatorCounter(L.Callback):
     def total(self) -> float:
         return sum(self.per_step.values())
 
-    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self._leave()
+
+    def _leave(self) -> None:
         if self._mode is not None:  # training stopped inside a counted step
             self._mode.__exit__(None, None, None)
             self._mode = None
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._leave()
         if self.path is not None and trainer.is_global_zero:
             write_atomic(self.path, json.dumps({"steps": len(self.steps), "total": self.total, "per_step": self.per_step}).encode())

@@ -49,7 +49,8 @@ class SplatModule(SceneModule):
     """Trains Gaussian splats on whole training views or patches (``data=views``).
 
     Under the model contract it renders a camera (:meth:`render_view`); it has no density field to mesh.
-    Logs ``train/loss``, ``train/psnr``, ``train/gaussians`` every step (and the per-view tables' penalties,
+    Logs ``train/loss`` every step, ``train/psnr`` and ``train/gaussians`` at the steps the logger writes and the
+    last (and the per-view tables' penalties,
     ``train/loss_appearance`` and ``train/loss_camera_*``, where they are on) and ``val/psnr``, ``val/ssim`` (and
     ``val/depth_error`` where the scene has true depth) over whole held-out views.
 
@@ -135,6 +136,7 @@ class SplatModule(SceneModule):
         self.random_scale, self.triangulate, self.random_beside_points = random_scale, triangulate, random_beside_points
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
+        self._step_logged: tuple[torch.Tensor, torch.Tensor, float | None] | None = None  # rgb, image, mse, until logged
         self.view_size: tuple[int, int] | None = None  # a whole training view's height and width (set by setup)
 
     # -- fitting starts: the scene's space, its scale and the Gaussians' start --------------------------------
@@ -348,10 +350,18 @@ class SplatModule(SceneModule):
 
         A Gaussian's blend weights summed over a set of pixels are the gradient, in its colour, of the rendered colours
         summed over them: each view is drawn once to find its errors, then once more with every colour 1 and
-        backpropagated (the high-error pixels' sum through the red channel, every pixel's through the green)."""
+        backpropagated (the high-error pixels' sum through the red channel, every pixel's through the green). The
+        views are drawn at their loaded poses, without the appearance transform, over the whole view (not
+        ``data.masks=exclude``'s mask)."""
         train = self.trainer.datamodule.scene.train
         was_training = self.training
         self.eval()  # drawn as a held-out view is (no absgrad kept); the bands not yet reached are still zero
+        try:
+            return self._view_scores(train, views, error_threshold)
+        finally:
+            self.train(was_training)
+
+    def _view_scores(self, train: Any, views: torch.Tensor, error_threshold: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         n = len(self.gaussians)
         high, drawn = torch.zeros(n, device=self.device), torch.zeros(n, device=self.device)
         seen = torch.zeros(n, dtype=torch.bool, device=self.device)
@@ -369,7 +379,6 @@ class SplatModule(SceneModule):
             high.index_add_(0, footprints.ids, ones.grad[:, 0])
             drawn.index_add_(0, footprints.ids, ones.grad[:, 1])
             seen[footprints.ids] = True
-        self.train(was_training)
         return high / len(views), drawn / len(views), seen
 
     @torch.no_grad()
@@ -427,11 +436,23 @@ class SplatModule(SceneModule):
                 loss = loss + penalty
                 self.log(f"train/loss_{name}", penalty.detach(), on_step=True, on_epoch=False)
         self.log("train/loss", loss, on_step=True, on_epoch=False)
+        self._step_logged = (rgb.detach(), image, mse)
         if self.logs_this_step():  # what only the logger reads, made when it writes (each is a launch or more a step)
-            psnr = mse_to_psnr(torch.mean((rgb.detach() - image) ** 2)) if mse is None else -10.0 * math.log10(max(mse, 1e-30))
-            self.log("train/psnr", psnr, on_step=True)
-            self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
+            self.log_step_figures()
         return loss
+
+    def log_step_figures(self) -> None:
+        """Log this step's ``train/psnr`` and ``train/gaussians`` (once a step)."""
+        if self._step_logged is None:
+            return
+        rgb, image, mse = self._step_logged
+        self._step_logged = None
+        if mse is None:
+            psnr = mse_to_psnr(torch.mean((rgb - image) ** 2))
+        else:
+            psnr = -10.0 * math.log10(mse) if mse > 0 else math.inf  # as mse_to_psnr has it
+        self.log("train/psnr", psnr, on_step=True)
+        self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
 
     def photometric_loss(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, float | None]:
         """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given
@@ -456,6 +477,9 @@ class SplatModule(SceneModule):
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         self._drawn = None
+        if self._trainer is not None and self.trainer.should_stop:  # stopped early (a time limit): the run's last figures
+            self.log_step_figures()
+        self._step_logged = None
         if self.strategy is not None:
             with record_function("splats.strategy"):
                 self.strategy.after_step(self.gaussians, self.global_step, self.replace_parameter, self.means_lr())

@@ -189,12 +189,14 @@ class FusedPhotometricLoss(torch.autograd.Function):
         row_sums = np.empty((height, 3), np.float64)
         loss_forward(x, y, channels, mask_array, masked, ssim_weight, window, partials, signs, row_sums)
         l1, ssim, squared = row_sums.sum(axis=0)  # in row order: the same sum every time
+        ctx.save_for_backward(rgb, image)  # autograd's check that neither is changed in place before the backward
         ctx.saved = (x, y, partials, signs, ssim_weight, window, channels)
         loss = (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim)
         return torch.from_numpy(np.asarray(loss, dtype=x.dtype)), float(squared / x.size)
 
     @staticmethod
     def backward(ctx, grad_loss, _mse):
+        ctx.saved_tensors  # raises where rgb or the image was changed in place since the forward pass
         x, y, partials, signs, ssim_weight, window, channels = ctx.saved
         grad = torch.empty(x.shape, dtype=grad_loss.dtype)
         loss_backward(x, y, partials, signs, ssim_weight, window, channels, grad_loss.detach().numpy().item(), grad.numpy())
@@ -212,6 +214,7 @@ def photometric_loss_fast(rgb: torch.Tensor, image: torch.Tensor, ssim_weight: f
     if min(rgb.shape[:2]) <= WINDOW // 2:
         raise ValueError(f"photometric_loss_fast needs views larger than {WINDOW // 2} pixels a side (SSIM's reflect "
                          f"padding), got {tuple(rgb.shape[:2])}")
-    if mask is not None and mask.shape != rgb.shape[:2]:
-        raise ValueError(f"photometric_loss_fast's mask must be (H, W) = {tuple(rgb.shape[:2])}, got {tuple(mask.shape)}")
+    if mask is not None and (mask.shape != rgb.shape[:2] or mask.dtype != torch.bool):
+        raise ValueError(f"photometric_loss_fast's mask must be (H, W) = {tuple(rgb.shape[:2])} bool, got "
+                         f"{tuple(mask.shape)} {mask.dtype}")
     return FusedPhotometricLoss.apply(rgb, image, mask, float(ssim_weight))

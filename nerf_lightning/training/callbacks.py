@@ -80,7 +80,7 @@ class Snapshots(TimedCallback):
 
     Every image a validation step returns under ``images`` (name -> (H, W, 3) or (H, W) in [0, 1]) is
     written to ``<output_dir>/snapshots/<name>_<view>_step<step>.png`` and to TensorBoard as ``val/<name>_<view>``
-    (the ``target`` images once only). The history of ``train/psnr`` (every step) and ``val/psnr`` is
+    (the ``target`` images once only). The history of ``train/psnr`` (at the steps the logger writes) and ``val/psnr`` is
     written to ``psnr_history.json`` after each validation and plotted to ``psnr.png`` when training ends.
     The history is part of the callback's checkpoint state, so a resumed run keeps its whole curve.
     When training ends, the snapshots of the first view become ``montage.gif``: the fit over training.

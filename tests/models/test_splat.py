@@ -6,9 +6,11 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import lightning as L
 import pytest
 import torch
 
+from nerf_lightning.models.splat import SplatModule
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.projection import Projection
 from nerf_lightning.splats.strategy import DefaultStrategy
@@ -333,3 +335,29 @@ def test_splats_train_and_draw_on_the_cpus_tiles_where_auto_would_pick_an_apple_
     # the commands: device=auto loads the splats on the CPU
     loaded, _ = load_model(f"{cfg.paths.output_dir}/checkpoints/last.ckpt", device="auto")
     assert loaded.device.type == "cpu"
+
+
+class StopAtThree(L.Callback):
+    """Stops the run after its third step, as a time limit would."""
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step == 3:
+            trainer.should_stop = True
+
+
+def test_the_step_figures_are_logged_when_the_logger_writes_and_at_an_early_stop(make_config, scene_cache, monkeypatch):
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
+    logged = []
+    original = SplatModule.log_step_figures
+
+    def spy(self):
+        logged.append((self.global_step, self._step_logged is not None))
+        original(self)
+
+    monkeypatch.setattr(SplatModule, "log_step_figures", spy)
+    cfg = make_config(*QUICK, "trainer.max_steps=20", "trainer.log_every_n_steps=2", "data.val_every=null",
+                      "trainer.enable_model_summary=false", f"+callbacks.stop._target_={__name__}.StopAtThree")
+    metrics = train(cfg)
+    assert metrics["step"] == 3 and math.isfinite(metrics["train/psnr"]) and metrics["train/gaussians"] == 3000
+    # the steps the logger writes (steps 2: global_step 1 during it), and the stop after step 3 (global_step 3 by then)
+    assert [step for step, fresh in logged if fresh] == [1, 3], logged

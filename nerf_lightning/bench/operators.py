@@ -67,9 +67,8 @@ class StepOperatorCounter(L.Callback):
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any, batch_idx: int) -> None:
         if self._mode is not None:
-            self._mode.__exit__(None, None, None)
             self.steps.append(self._mode.counts)
-            self._mode = None
+            self._leave()
 
     @property
     def per_step(self) -> dict[str, float]:

@@ -458,7 +458,7 @@ class SplatModule(SceneModule):
         """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given
         (:func:`~nerf_lightning.splats.loss.photometric_loss`), and the mean squared error where it comes free: in one
         numba pass where numba draws (:mod:`~nerf_lightning.splats.loss_fast`), else PyTorch's operators and None."""
-        if self.numba_draws() and min(rgb.shape[:2]) > 5:
+        if self.numba_draws():
             from nerf_lightning.splats.loss_fast import photometric_loss_fast
 
             return photometric_loss_fast(rgb, image, self.ssim_weight, mask)

@@ -1,5 +1,6 @@
-"""Quality metrics: of images (PSNR and SSIM from kornia, depth error; an SSIM map for losses, equal to kornia's) and
-of meshes (Chamfer distance); and the masks' opacity loss (binary cross-entropy against the object masks)."""
+"""Quality metrics: of images (PSNR and SSIM from kornia, depth error; an SSIM map for losses, equal to kornia's; the
+colour correction before the ``cc_`` scores) and of meshes (Chamfer distance); and the masks' opacity loss (binary
+cross-entropy against the object masks)."""
 
 from __future__ import annotations
 
@@ -48,6 +49,38 @@ def ssim_map(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11)
     numerator = (2.0 * mu1_mu2 + c1) * (2.0 * (mu12_blur - mu1_mu2) + c2)
     denominator = (mu1_sq + mu2_sq + c1) * ((mu1_sq_blur - mu1_sq) + (mu2_sq_blur - mu2_sq) + c2)
     return numerator / (denominator + 1e-12)
+
+
+def colour_correct(rgb: torch.Tensor, target: torch.Tensor, iterations: int = 5, eps: float = 0.5 / 255) -> torch.Tensor:
+    """(H, W, 3) rendered colours -> (H, W, 3) the same under the affine colour map (a 3x3 matrix and a bias, fitted
+    by least squares) that brings them closest to ``target`` (H, W, 3), clipped to [0, 1]: what the ``cc_`` scores
+    are taken on (gsplat's ``cc_psnr``; Zip-NeRF's ``color_correct``, there with quadratic terms too).
+
+    The map says how far a render is from its photo in everything but a global colour transform: a held-out photo's
+    exposure and white balance, which nothing learnt from the training photos can know. As Zip-NeRF does, each colour
+    channel is fitted only over the pixels where neither the render nor the photo is clipped (within ``eps`` of 0 or
+    1), and the fit is repeated ``iterations`` times on the mapped colours, whose clipped pixels change with the map.
+    Solved in float64; a channel with too few unclipped pixels to fit keeps the identity."""
+    if rgb.shape != target.shape or rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise ValueError(f"colour_correct expects (H, W, 3) rgb and target of one shape, got {tuple(rgb.shape)} and {tuple(target.shape)}")
+    colours, wanted = rgb.reshape(-1, 3).double(), target.reshape(-1, 3).double()
+
+    def unclipped(values: torch.Tensor) -> torch.Tensor:
+        return (values >= eps) & (values <= 1.0 - eps)
+
+    first = unclipped(colours)  # (P, 3): where the render itself is clipped, its colour says nothing of the map
+    mapped = colours
+    for _ in range(iterations):
+        features = torch.cat([mapped, torch.ones_like(mapped[:, :1])], dim=1)  # (P, 4)
+        columns = []
+        for channel in range(3):
+            use = first[:, channel] & unclipped(mapped[:, channel]) & unclipped(wanted[:, channel])
+            if int(use.sum()) < 4:  # nothing to fit: this channel as it is
+                columns.append(torch.eye(4, dtype=features.dtype, device=features.device)[:, channel])
+                continue
+            columns.append(torch.linalg.lstsq(features[use], wanted[use, channel, None]).solution[:, 0])
+        mapped = (features @ torch.stack(columns, dim=1)).clamp(0.0, 1.0)
+    return mapped.reshape(rgb.shape).to(rgb.dtype)
 
 
 def image_metrics(

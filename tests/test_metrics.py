@@ -1,4 +1,5 @@
-"""The SSIM map the splat loss differentiates every step, held equal to kornia's in values and gradients; the masks' opacity loss."""
+"""The SSIM map the splat loss differentiates every step, held equal to kornia's in values and gradients; the masks'
+opacity loss; the colour correction before the ``cc_`` scores."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import kornia
 import pytest
 import torch
 
-from nerf_lightning.metrics import opacity_mask_loss, ssim_map
+from nerf_lightning.metrics import colour_correct, image_metrics, opacity_mask_loss, ssim_map
 
 
 @pytest.mark.parametrize("size", [(1, 3, 37, 53), (2, 1, 16, 12)])
@@ -44,3 +45,31 @@ def test_the_mask_loss_is_the_binary_cross_entropy_over_the_pixels_it_weighs():
     assert float(opacity_mask_loss(opacity, mask, weight)) == pytest.approx(float(entropy[:3].mean()), rel=1e-5)
     # right to the clamp: finite, and near zero
     assert float(opacity_mask_loss(torch.tensor([1.0, 0.0]), torch.tensor([True, False]))) == pytest.approx(-math.log(1 - 1e-3), rel=1e-3)
+
+
+def test_the_colour_correction_undoes_an_affine_colour_change_and_leaves_out_clipped_pixels():
+    generator = torch.Generator().manual_seed(0)
+    photo = torch.rand(30, 40, 3, generator=generator) * 0.8 + 0.1
+    matrix = torch.tensor([[1.2, 0.05, 0.0], [0.0, 0.85, 0.03], [0.02, 0.0, 1.1]])
+    bias = torch.tensor([0.03, -0.02, 0.05])
+    render = (photo - bias) @ torch.linalg.inv(matrix).T  # the photo = render A^T + b: another exposure and white balance
+    assert float(image_metrics(render, photo)["psnr"]) < 25
+    assert torch.allclose(colour_correct(render, photo), photo, atol=1e-5)
+    # a burnt-out patch in the render (clipped to 1) says nothing of the map: fitted without it, the rest still matches
+    burnt = render.clone()
+    burnt[:10, :10] = 1.0
+    corrected = colour_correct(burnt, photo)
+    assert torch.allclose(corrected[10:], photo[10:], atol=1e-5)
+    # a render that is already right stays so, clipped into [0, 1]
+    assert torch.allclose(colour_correct(photo, photo), photo, atol=1e-6)
+
+
+def test_the_colour_correction_keeps_a_channel_it_cannot_fit_and_refuses_mismatched_images():
+    render = torch.full((8, 8, 3), 0.5)
+    render[..., 2] = 0.0  # blue all clipped: nothing to fit it on
+    photo = render.clone()
+    photo[..., :2] = 0.6
+    corrected = colour_correct(render, photo)
+    assert torch.allclose(corrected[..., :2], photo[..., :2], atol=1e-5) and torch.equal(corrected[..., 2], render[..., 2])
+    with pytest.raises(ValueError, match=r"colour_correct expects \(H, W, 3\) rgb and target of one shape"):
+        colour_correct(render, photo[:4])

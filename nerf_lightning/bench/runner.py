@@ -108,6 +108,10 @@ def suite_argument(suite: Suite) -> str:
     return suite.name if shipped_suites().get(suite.name) == suite.path else str(suite.path)
 
 
+# the scores after nerf-eval's colour correction (nerf_lightning.outputs.evaluation), beside the raw ones
+COLOUR_CORRECTED = ("cc_psnr", "cc_ssim", "cc_lpips", "cc_psnr_masked")
+
+
 def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path, written: Sequence[Path] = ()) -> dict[str, Any]:
     """Train, then score every mark, of one row; returns its result (see the module docstring)."""
     from nerf_lightning.bench.machine import provenance
@@ -134,7 +138,8 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path, written:
         scored = json.loads((output_dir / "eval.json").read_text())
         curve.append({"minutes": mark["minutes"], "step": mark["step"], "training_seconds": mark["training_seconds"],
                       "psnr": scored["mean"].get("psnr"), "ssim": scored["mean"].get("ssim"), "lpips": scored["mean"].get("lpips"),
-                      "psnr_masked": scored["mean"].get("psnr_masked"), "depth_error": scored["mean"].get("depth_error"), "seconds_per_frame": scored.get("seconds_per_frame"),
+                      "psnr_masked": scored["mean"].get("psnr_masked"), "depth_error": scored["mean"].get("depth_error"),
+                      **{key: scored["mean"].get(key) for key in COLOUR_CORRECTED}, "seconds_per_frame": scored.get("seconds_per_frame"),
                       "views": scored["views"], "frame_size": scored.get("frame_size")})
     last = curve[-1]
     # the commands as a user types them, with the data where the suite names it
@@ -147,6 +152,7 @@ def measure_row(row: Row, suite: Suite, data_dir: Path, work_dir: Path, written:
         "steps": last["step"], "training_minutes": round(last["training_seconds"] / 60, 2),
         "seconds_per_step": round(last["training_seconds"] / max(last["step"], 1), 4),
         "psnr": last["psnr"], "ssim": last["ssim"], "lpips": last["lpips"], "psnr_masked": last["psnr_masked"], "depth_error": last["depth_error"],
+        **{key: last[key] for key in COLOUR_CORRECTED},
         "seconds_per_frame": last["seconds_per_frame"], "frame_size": last["frame_size"], "views": last["views"],
         **step_figures(metrics), "curve": curve,
         "wall_seconds": round(time.perf_counter() - started, 1), "wall_seconds_training": round(wall_train, 1),

@@ -20,6 +20,7 @@ from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
 from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
 from nerf_lightning.models.contract import Overlay
+from nerf_lightning.parameters.exposure import ViewExposure
 from nerf_lightning.rendering.renderer import Renderer
 from nerf_lightning.rendering.rounds import RoundsRenderer
 from nerf_lightning.rendering.samplers.base import RaySampler
@@ -49,6 +50,10 @@ class RadianceFieldModule(SceneModule):
         camera_refinement: learn a pose correction for each training view
             (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`, its own learning rate, its penalties
             logged as ``train/loss_camera_*``); None keeps the poses as loaded.
+        exposure: learn each training photo's exposure and white balance
+            (:class:`~nerf_lightning.parameters.exposure.ViewExposure`: three gains a photo, each training ray's colour,
+            not the background, multiplied by its photo's; its own learning rate, its penalty logged as
+            ``train/loss_exposure_appearance``); None: the photos as they are. Held-out views are rendered at the mean.
         train_background: what a training ray shows where it is not opaque: ``scene`` (the scene space's
             background, as rendered) or ``random`` (a uniform random colour a ray and a step, Instant-NGP's): with
             photos that are opaque everywhere (a real capture) a transparent ray then cannot match its pixel, so the
@@ -77,6 +82,7 @@ class RadianceFieldModule(SceneModule):
         renderer: Renderer | None = None,
         chunk_size: int = 4096,
         camera_refinement: CameraRefinement | None = None,
+        exposure: ViewExposure | None = None,
         train_background: str = "scene",
         mask_loss: float = 0.0,
         compile: bool = False,
@@ -86,7 +92,7 @@ class RadianceFieldModule(SceneModule):
         self.field, self.sampler = field, sampler
         self.renderer = renderer or RoundsRenderer()
         self.chunk_size = chunk_size
-        self.camera_refinement = camera_refinement
+        self.camera_refinement, self.exposure = camera_refinement, exposure
         self.train_background = check_train_background(train_background)
         self.mask_loss = check_mask_loss(mask_loss)
         if compile and (not self.renderer.fixed_shapes or (sampler.grid is not None and sampler.capacity is None)):
@@ -121,18 +127,17 @@ class RadianceFieldModule(SceneModule):
                                  f"the table's small gradients from vanishing in float16 (got trainer.precision={precision}); "
                                  "or use table_precision=bfloat16")
         scene = getattr(datamodule, "scene", None)
-        for per_view in (self.field.appearance, self.camera_refinement):
+        for per_view in (self.field.appearance, self.camera_refinement, self.exposure):
             if per_view is not None and scene is not None:
                 per_view.resize(len(scene.train))
 
     def parameter_groups(self) -> list[dict[str, Any]]:
         """``field`` (the field and what the sampler learns) at the optimiser's learning rate, and the camera
-        corrections, if any, in ``camera_refinement`` at their own."""
-        if self.camera_refinement is None:
-            return [{"name": "field", "params": list(self.parameters())}]
-        refinement = {id(p) for p in self.camera_refinement.parameters()}
-        return [{"name": "field", "params": [p for p in self.parameters() if id(p) not in refinement]},
-                {"name": "camera_refinement", "params": list(self.camera_refinement.parameters()), "lr": self.camera_refinement.lr}]
+        corrections and the photos' exposures, those that are on, in ``camera_refinement`` and ``exposure`` at their own."""
+        own = {name: table for name in ("camera_refinement", "exposure") if (table := getattr(self, name)) is not None}
+        apart = {id(p) for table in own.values() for p in table.parameters()}
+        return [{"name": "field", "params": [p for p in self.parameters() if id(p) not in apart]},
+                *({"name": name, "params": list(table.parameters()), "lr": table.lr} for name, table in own.items())]
 
     def on_fit_start(self) -> None:
         space = getattr(getattr(self.trainer, "datamodule", None), "space", None)
@@ -274,6 +279,8 @@ class RadianceFieldModule(SceneModule):
             rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
         out = self.render(rays_o, rays_d, perturb=True, camera_indices=camera_index)
         rgb, target = out["rgb"], batch["rgb"]
+        if self.exposure is not None and camera_index is not None:  # each ray its photo's gains, the background as it is
+            rgb = self.exposure(rgb, camera_index, out["accumulation"], self.space.background)
         if self.train_background == "random":  # what a ray leaves transparent shows a random colour, not the photo's
             colour = torch.rand_like(rgb)
             rgb = rgb + (1.0 - out["accumulation"])[:, None] * (colour - self.space.background.to(rgb))
@@ -294,6 +301,8 @@ class RadianceFieldModule(SceneModule):
         appearance = self.field.appearance
         if appearance is not None:
             extra_losses.update(appearance.penalties())
+        if self.exposure is not None:
+            extra_losses.update({f"exposure_{name}": value for name, value in self.exposure.penalties().items()})
         loss = mse + sum(extra_losses.values())
         if not loss.requires_grad:  # no ray of the batch met an occupied cell: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0

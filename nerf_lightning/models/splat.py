@@ -28,6 +28,7 @@ from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
 from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
+from nerf_lightning.parameters.exposure import ViewExposure
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
@@ -89,7 +90,9 @@ class SplatModule(SceneModule):
         appearance: a learnt colour transform for each training view
             (:class:`~nerf_lightning.splats.appearance.ViewColourAffine`: the Gaussians' colours in a training view's
             render, not the background, through its affine map before the loss; its own learning rate, its penalty
-            logged as ``train/loss_appearance``); None: none. Held-out views are drawn without it (the identity).
+            logged as ``train/loss_appearance``), or each photo's exposure and white balance alone
+            (:class:`~nerf_lightning.parameters.exposure.ViewExposure`: three gains a photo); None: none. Held-out
+            views are drawn without it (the training photos' mean).
         camera_refinement: learn a pose correction for each training view
             (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`: the training view's c2w corrected before
             projecting; its own learning rate, its penalties logged as ``train/loss_camera_*``); None keeps the poses
@@ -111,7 +114,7 @@ class SplatModule(SceneModule):
                  means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
                  rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
                  random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False,
-                 random_beside_points: int = 0, appearance: ViewColourAffine | None = None, camera_refinement: CameraRefinement | None = None,
+                 random_beside_points: int = 0, appearance: ViewColourAffine | ViewExposure | None = None, camera_refinement: CameraRefinement | None = None,
                  train_background: str = "scene", mask_loss: float = 0.0) -> None:
         super().__init__(optimizer, scheduler)
         self.train_background = check_train_background(train_background)

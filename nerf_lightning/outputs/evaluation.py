@@ -1,5 +1,9 @@
 """Evaluating a trained model (any that renders a camera) on held-out views: PSNR, SSIM, LPIPS (where its weights
-can be had: :mod:`nerf_lightning.outputs.lpips`) and depth error per view and on average.
+can be had: :mod:`nerf_lightning.outputs.lpips`) and depth error per view and on average; and the same colour
+scores after each render's colours are mapped to its photo's by the affine map that fits them best
+(:func:`~nerf_lightning.metrics.colour_correct`): ``cc_psnr``, ``cc_ssim``, ``cc_lpips`` (and ``cc_psnr_masked``),
+named as gsplat names them. The raw scores are the headline; the ``cc_`` ones say what is left once a held-out
+photo's exposure and white balance, which no training photo tells, are taken out.
 
 ``root=<transforms.json>`` evaluates on views captured separately instead: a second file of the same capture
 (instant-ngp / nerfstudio / Blender layout), loaded into the trained scene's world with the similarity the
@@ -24,7 +28,7 @@ from nerf_lightning.data.scene import Scene, Views, evenly_spaced
 from nerf_lightning.data.scene_data import view_batch
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.outputs.lpips import LPIPS, load_lpips
-from nerf_lightning.metrics import image_metrics
+from nerf_lightning.metrics import colour_correct, image_metrics
 from nerf_lightning.models.contract import RendersCamera, require
 from nerf_lightning.outputs.frames import render_frame
 
@@ -69,7 +73,8 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
     ``output_dir``, the renders go to ``images/<view>_rgb.png`` and ``_depth.png`` there. With a ``masks`` mode and
     masks, each view is scored over the whole image (with ``background``, the photo composited onto ``background``
     outside its mask, as training saw it) and over its mask alone (``psnr_masked``, ``ssim_masked``). With ``lpips``,
-    each view's ``lpips`` too (over the whole image)."""
+    each view's ``lpips`` too (over the whole image). Each colour score again as ``cc_<name>``, of the render mapped to
+    the photo's colours (:func:`~nerf_lightning.metrics.colour_correct`, fitted over the whole image)."""
     rows = []
     for index in tqdm(range(len(views)), desc=f"evaluating {len(views)} views", unit="view"):
         started = time.perf_counter()
@@ -79,8 +84,11 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
         batch = view_batch(views, index, masks, background)  # the target as validation sees it
         target, mask = batch["image"], batch.get("object_mask")
         metrics = image_metrics(frame["rgb"], target, frame["depth"] if true_depth is not None else None, true_depth, mask)
+        corrected = colour_correct(frame["rgb"].clamp(0.0, 1.0), target)
+        metrics.update({f"cc_{key}": value for key, value in image_metrics(corrected, target, mask=mask).items()})
         if lpips is not None:
             metrics["lpips"] = lpips(frame["rgb"].clamp(0.0, 1.0), target)
+            metrics["cc_lpips"] = lpips(corrected, target)
         rows.append({"view": views.names[index], **{key: float(value) for key, value in metrics.items()}, "seconds": round(seconds, 4)})
         if output_dir is not None:
             stem = Path(views.names[index]).stem
@@ -91,7 +99,8 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
 
 def mean_metrics(rows: list[dict[str, Any]]) -> dict[str, float]:
     """The mean of each metric over the views (depth error over the views where it is defined)."""
-    keys = [key for key in ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked", "depth_error") if any(key in row for row in rows)]
+    names = ("psnr", "ssim", "lpips", "psnr_masked", "ssim_masked")
+    keys = [key for key in (*names, "depth_error", *(f"cc_{name}" for name in names)) if any(key in row for row in rows)]
     mean = {}
     for key in keys:
         values = [row[key] for row in rows if key in row and row[key] == row[key]]  # NaN: a view with no surface

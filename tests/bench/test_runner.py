@@ -48,6 +48,8 @@ def test_the_smallest_row_trains_scores_and_writes_its_json(quick_row):
     assert row["training_minutes"] <= 3 + 0.1
     # the scene's mean colour scores about 10 dB on these views; its 150 steps reach about 18.6 (21 s on 2 cores)
     assert 16.0 < row["psnr"] < 60.0 and 0.0 < row["ssim"] <= 1.0
+    # the colour-corrected scores beside the raw ones: a map fitted to the photo can only bring the render closer
+    assert row["cc_psnr"] >= row["psnr"] - 0.05 and 0.0 < row["cc_ssim"] <= 1.0 and row["curve"][0]["cc_psnr"] is not None
     assert row["seconds_per_frame"] > 0 and row["seconds_per_step"] > 0 and math.isfinite(row["samples_per_ray"])
     # where and with what it was measured, and how to measure it again
     assert {"name", "cpu", "cores", "gpu"} <= set(row["machine"]) and row["machine"]["gpu"] is None
@@ -63,6 +65,7 @@ def test_the_results_table_and_plot_are_generated(quick_row):
     folder, _ = quick_row
     report = (folder / "results.md").read_text()
     assert "## procedural" in report and "| quick | fast | " in report
+    assert "colour-corrected PSNR / SSIM / LPIPS" in report and " / – |" in report  # LPIPS where its weights are
     assert "![procedural: held-out PSNR against training minutes](results/procedural.png)" in report
     assert_curves_drawn(folder / "results" / "procedural.png", curves=1)
     assert "nerf-bench run quick.yaml --only procedural/fast/3min/seed0" in report

@@ -170,21 +170,27 @@ def test_the_mask_loss_teaches_opacity_from_the_masks(make_config, scene_cache, 
         instantiate(make_config("experiment=fast", "model.mask_loss=-1").model)
 
 
-def test_appearance_and_camera_refinement_train_and_load_from_their_checkpoint(make_config, scene_cache, monkeypatch):
+def test_appearance_exposure_and_camera_refinement_train_and_load_from_their_checkpoint(make_config, scene_cache, monkeypatch):
+    from hydra.utils import instantiate
+
     from nerf_lightning.checkpoints import load_model, load_run_data
 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    cfg = make_config("experiment=fast", "model.field.appearance_dim=4", "model/camera_refinement=so3xr3", "model.sampler.grid.resolution=16",
+    assert instantiate(make_config("experiment=fast").model).exposure is None  # off unless asked for
+    cfg = make_config("experiment=fast", "model.field.appearance_dim=4", "model/camera_refinement=so3xr3", "model/exposure=gains",
+                      "model.sampler.grid.resolution=16",
                       "data.batch_size=256", "trainer.max_steps=4", "data.val_every=4", "data.val_views=1",
                       "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false")
     metrics = train(cfg)
-    assert {"train/loss_camera_rotation", "train/loss_camera_translation", "train/loss_appearance", "val/psnr"} <= metrics.keys()
+    assert {"train/loss_camera_rotation", "train/loss_camera_translation", "train/loss_appearance", "train/loss_exposure_appearance",
+            "val/psnr"} <= metrics.keys()
     model, info = load_model(cfg.paths.output_dir + "/checkpoints/last.ckpt")
     n_train = len(load_run_data(info["config"]).scene.train)
     assert model.field.appearance.rows.shape == (n_train, 4) and model.camera_refinement.rows.shape == (n_train, 6)
-    assert model.camera_refinement.rows.abs().sum() > 0  # learnt, at their own learning rate
+    assert model.exposure.rows.shape == (n_train, 3)
+    assert model.camera_refinement.rows.abs().sum() > 0 and model.exposure.rows.abs().sum() > 0  # learnt, at their own learning rates
     optimizer = model.configure_optimizers()["optimizer"]
-    assert [group["lr"] for group in optimizer.param_groups] == [model.make_optimizer.keywords["lr"], 6e-4]
+    assert [group["lr"] for group in optimizer.param_groups] == [model.make_optimizer.keywords["lr"], 6e-4, 1e-2]
 
 
 @pytest.mark.slow  # half a minute of pose fitting; CI keeps under 20 minutes

@@ -70,6 +70,8 @@ def test_a_new_kind_of_model_evaluates_and_renders_paths_through_the_contract(tm
     views.images[0, :4] = 0.0  # one view differs from its render: a finite PSNR there, infinite (perfect) on the others
     rows = evaluate_views(model, views, tmp_path / "eval")
     assert len(rows) == 3 and rows[0]["psnr"] < 40 and rows[1]["psnr"] > 60
+    # beside each raw score the colour-corrected one: the four changed pixels are no global colour change
+    assert rows[0]["cc_psnr"] < 40 and rows[0]["cc_ssim"] <= 1.0 and "cc_psnr_masked" not in rows[0]
     assert (tmp_path / "eval" / "images" / "view_000_depth.png").is_file()
 
     written = write_path_renders(model, orbit_views(), tmp_path / "path")

@@ -18,6 +18,7 @@ from nerf_lightning.geometry.cameras import look_at
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.models.splat import SplatModule
+from nerf_lightning.parameters.exposure import ViewExposure
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import Gaussians
 from nerf_lightning.splats.projection import project
@@ -39,7 +40,7 @@ def arc_cameras(n: int, shift: float = 0.0) -> torch.Tensor:
     return look_at(torch.stack([3 * angles.cos(), 3 * angles.sin(), torch.ones(n)], dim=-1))
 
 
-def tiny_model(appearance: ViewColourAffine | None = None, refinement: CameraRefinement | None = None) -> SplatModule:
+def tiny_model(appearance: ViewColourAffine | ViewExposure | None = None, refinement: CameraRefinement | None = None) -> SplatModule:
     """400 nearly opaque Gaussians of random colours on the unit sphere (they cover every pixel of the arc's views,
     as a real capture's scene does), drawn by the pairs rasteriser; the log a no-op (no trainer)."""
     model = SplatModule(Gaussians(sh_degree=0, initial_opacity=0.9), partial(torch.optim.Adam, eps=1e-15), RATES,
@@ -158,6 +159,68 @@ def test_a_view_of_another_exposure_is_fitted_better_with_the_affine_table(one_t
     assert affine_held > plain_held - 0.5, results
     offset, _ = appearance.offset_and_bias(torch.tensor(0))
     assert float(offset.detach().diagonal().mean()) < -0.05  # the view's transform darkens, as its photo was darkened
+
+
+# -- each photo's exposure and white balance ----------------------------------------------------------------------------
+
+
+def test_the_gains_are_centred_a_colour_each_and_leave_the_background():
+    exposure = ViewExposure()
+    exposure.resize(4)
+    rgb, accumulation = torch.rand(5, 6, 3), torch.rand(5, 6)
+    background = torch.tensor([0.2, 0.5, 0.9])
+    torch.testing.assert_close(exposure(rgb, torch.tensor(2), accumulation, background), rgb)  # zero rows: gain 1
+    assert exposure(rgb, None) is rgb  # a held-out view: the photos' mean
+    with torch.no_grad():
+        exposure.rows.copy_(torch.tensor([[0.3, 0.1, 0.0], [0.0, 0.0, 0.0], [-0.2, 0.1, 0.4], [0.5, 0.5, 0.5]]))
+    # zero-mean in the logarithm: the mean photo is drawn with gain 1
+    torch.testing.assert_close(exposure.centred().mean(dim=0), torch.zeros(3), atol=1e-6, rtol=0)
+    gain = (exposure.rows[2] - exposure.rows.mean(dim=0)).exp()
+    torch.testing.assert_close(exposure(rgb, torch.tensor(2)), rgb * gain)
+    # only what the scene drew is gained: the background, where the view is clear, stays as it is
+    drawn = rgb - (1 - accumulation[..., None]) * background
+    torch.testing.assert_close(exposure(rgb, torch.tensor(2), accumulation, background), drawn * gain + (1 - accumulation[..., None]) * background)
+    # a ray batch: each ray its own photo's gains
+    rays = torch.rand(3, 3)
+    gains = torch.stack([(exposure.rows[i] - exposure.rows.mean(dim=0)).exp() for i in (0, 3, 0)])
+    torch.testing.assert_close(exposure(rays, torch.tensor([0, 3, 0])), rays * gains)
+    exposure(rays, torch.tensor([0, 3, 0])).sum().backward()
+    assert exposure.rows.grad[0].abs().min() > 0 and exposure.rows.grad[1].abs().max() > 0  # the mean ties every row in
+    with pytest.raises(ValueError, match="ViewExposure needs lr > 0"):
+        ViewExposure(lr=0.0)
+
+
+def test_photos_of_other_exposures_and_white_balance_are_learnt_as_their_gains(one_thread):
+    """Two of six training photos were taken at other settings (one 0.7 times as bright, one warmer: red 1.25, blue
+    0.8). With the gains, those two views are fitted, their learnt gains (against the mean photo) are the ones they
+    were taken with, and the held-out views, drawn at the mean, are no worse than without."""
+    truth = tiny_model()
+    train_c2w, held_c2w = arc_cameras(6), arc_cameras(3, shift=0.05)
+    photos, held = photos_of(truth, train_c2w), photos_of(truth, held_c2w)
+    photos[0] = photos[0] * 0.7
+    photos[3] = photos[3] * torch.tensor([1.25, 1.0, 0.8])
+    results = {}
+    for name, appearance in (("plain", None), ("gains", ViewExposure())):
+        model = tiny_model(appearance)
+        with torch.no_grad():
+            model.gaussians.sh0.copy_(rgb_to_sh(torch.full((400, 3), 0.5))[:, None])
+        fit(model, photos, train_c2w, steps=240)
+        model.eval()
+        with torch.no_grad():
+            views = []
+            for view in (0, 3):
+                out = model.render_view(K, train_c2w[view], SIZE, SIZE)
+                views.append(psnr(out["rgb"] if appearance is None else appearance(out["rgb"], torch.tensor(view), out["accumulation"],
+                                                                                    model.space.background), photos[view]))
+            results[name] = (views, sum(psnr(a, b) for a, b in zip(photos_of(model, held_c2w), held)) / len(held))
+    (plain_views, plain_held), (gain_views, gain_held) = results["plain"], results["gains"]
+    assert min(g - p for g, p in zip(gain_views, plain_views)) > 2.0, results
+    assert gain_held > plain_held - 0.5, results
+    gains = appearance.gains(torch.arange(6)).detach()
+    # the photos' geometric mean brightness is the Gaussians': each gain against the four untouched photos' gain
+    relative = gains / gains[[1, 2, 4, 5]].mean(dim=0)
+    torch.testing.assert_close(relative[0], torch.full((3,), 0.7), atol=0.05, rtol=0)
+    torch.testing.assert_close(relative[3], torch.tensor([1.25, 1.0, 0.8]), atol=0.06, rtol=0)
 
 
 # -- camera refinement ------------------------------------------------------------------------------------------------

@@ -51,7 +51,8 @@ def ssim_map(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11)
     return numerator / (denominator + 1e-12)
 
 
-def colour_correct(rgb: torch.Tensor, target: torch.Tensor, iterations: int = 5, eps: float = 0.5 / 255) -> torch.Tensor:
+def colour_correct(rgb: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None, iterations: int = 5,
+                   eps: float = 0.5 / 255) -> torch.Tensor:
     """(H, W, 3) rendered colours -> (H, W, 3) the same under the affine colour map (a 3x3 matrix and a bias, fitted
     by least squares) that brings them closest to ``target`` (H, W, 3), clipped to [0, 1]: what the ``cc_`` scores
     are taken on (gsplat's ``cc_psnr``; Zip-NeRF's ``color_correct``, there with quadratic terms too).
@@ -60,10 +61,17 @@ def colour_correct(rgb: torch.Tensor, target: torch.Tensor, iterations: int = 5,
     exposure and white balance, which nothing learnt from the training photos can know. As Zip-NeRF does, each colour
     channel is fitted only over the pixels where neither the render nor the photo is clipped (within ``eps`` of 0 or
     1), and the fit is repeated ``iterations`` times on the mapped colours, whose clipped pixels change with the map.
-    Solved in float64; a channel with too few unclipped pixels to fit keeps the identity."""
+    With ``mask`` (H, W) bool, the map is fitted over the mask's pixels and changes only them: where a loader put a
+    background colour into the photo (``data.masks=background``), that colour is no camera's, and it sits at 0 or 1,
+    where the fit would leave it out and the map still move it. A channel with too few unclipped pixels to fit keeps
+    the identity."""
     if rgb.shape != target.shape or rgb.ndim != 3 or rgb.shape[-1] != 3:
         raise ValueError(f"colour_correct expects (H, W, 3) rgb and target of one shape, got {tuple(rgb.shape)} and {tuple(target.shape)}")
-    colours, wanted = rgb.reshape(-1, 3).double(), target.reshape(-1, 3).double()
+    if mask is not None and mask.shape != rgb.shape[:2]:
+        raise ValueError(f"colour_correct expects an (H, W) mask of the images' size, got {tuple(mask.shape)} for {tuple(rgb.shape)}")
+    inside = torch.ones(rgb.shape[:2], dtype=torch.bool, device=rgb.device) if mask is None else mask.bool()
+    # solved on the CPU in float64 by SVD (gelsd), which a flat or clipped channel (a rank-deficient fit) leaves stable
+    colours, wanted = rgb[inside].detach().cpu().double(), target[inside].detach().cpu().double()
 
     def unclipped(values: torch.Tensor) -> torch.Tensor:
         return (values >= eps) & (values <= 1.0 - eps)
@@ -78,9 +86,11 @@ def colour_correct(rgb: torch.Tensor, target: torch.Tensor, iterations: int = 5,
             if int(use.sum()) < 4:  # nothing to fit: this channel as it is
                 columns.append(torch.eye(4, dtype=features.dtype, device=features.device)[:, channel])
                 continue
-            columns.append(torch.linalg.lstsq(features[use], wanted[use, channel, None]).solution[:, 0])
+            columns.append(torch.linalg.lstsq(features[use], wanted[use, channel, None], driver="gelsd").solution[:, 0])
         mapped = (features @ torch.stack(columns, dim=1)).clamp(0.0, 1.0)
-    return mapped.reshape(rgb.shape).to(rgb.dtype)
+    corrected = rgb.clone()
+    corrected[inside] = mapped.to(rgb)
+    return corrected
 
 
 def image_metrics(

@@ -4,7 +4,7 @@ of each stage.
 
     .venv/bin/python scripts/bench_process_data.py [--root ../shared/data/nerfstudio/fox | --turntable] [--images images]
         [--masks [masks]] [--mask-change erode:N|dilate:N] [--photo-change dark:F] [--mapper auto] [--photos N] [--max-size 1600]
-        [--mappers-over-seeds 0 1 2 3] [--work DIR]
+        [--offset K] [--repeat] [--shuffle] [--mappers-over-seeds 0 1 2 3] [--work DIR]
         [--out FILE.json] [-- more process_capture keys as key=value]
 
 A masked object capture with the photographer's LLFF poses (moldGoldCape, at 912 px):
@@ -25,7 +25,9 @@ posing rows are these JSONs: ``--out docs/results/posing/<name>.json``, then ``n
 The command's own settings (:func:`nerf_lightning.capture.process_capture`): one shared OPENCV camera, features
 read at ``--max-size`` px on the long side (1600), 8192 SIFT features an image, exhaustive matching (under 100
 images), ``--mapper`` (auto: both mappers, the model that explains more verified matches kept), seed 0. The photos are
-``<root>/<--images>`` (``--photos N``: N of them, evenly spaced by name, for a quick run); the capture is written to ``--work`` (a temporary folder by default). Position errors are
+``<root>/<--images>`` (``--photos N``: N of them, evenly spaced by name, for a quick run, ``--offset K`` from the
+K-th on; ``--repeat``: the first of them twice; ``--shuffle``: named in a shuffled order: the cases the pose checks
+are calibrated on); the capture is written to ``--work`` (a temporary folder by default). Position errors are
 percentages of the published cameras' spread (the root mean square distance of their centres from their mean).
 
 ``--mappers-over-seeds``: then, on the same images, features once and for each seed the matching (its RANSAC seeded)
@@ -48,6 +50,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import torch
 import yaml
 
 from nerf_lightning.bench.micro import SHARED_DATA, finish, seed_everything, skip, start_result
@@ -87,14 +90,39 @@ def mappers_over_seeds(images: Path, reference: Path, seeds: list[int], work: Pa
     return results
 
 
-def chosen_photos(images: Path, count: int | None, folder: Path) -> Path:
-    """``images`` itself, or ``count`` of its photos, evenly spaced by name, copied into ``folder``."""
-    if count is None:
-        return images
+def chosen_photos(images: Path, count: int | None, folder: Path, offset: int = 0, repeat: bool = False,
+                  shuffle: bool = False) -> tuple[Path, dict[str, str]]:
+    """``images`` itself, or ``count`` of its photos, evenly spaced by name from the ``offset``-th on, copied into
+    ``folder``; ``repeat``: the first chosen photo once more as ``<stem>_again``; ``shuffle``: the copies named in a
+    shuffled order (``photo_<k>``). Returns the folder and each copy's stem -> its photo's stem (for the comparison)."""
     names = sorted(path.name for path in images.iterdir() if path.is_file())
+    if count is None and not (repeat or shuffle or offset):
+        return images, {}
+    picked = [names[(index + offset) % len(names)] for index in evenly_spaced(len(names), count or len(names))]
+    copies = [(name, name) for name in picked]
+    if repeat:
+        copies.append((picked[0], f"{Path(picked[0]).stem}_again{Path(picked[0]).suffix}"))
+    if shuffle:
+        order = torch.randperm(len(copies), generator=torch.Generator().manual_seed(0)).tolist()
+        copies = [(photo, f"photo_{order[k]:03d}{Path(photo).suffix}") for k, (photo, _) in enumerate(copies)]
     folder.mkdir(parents=True)
-    for index in evenly_spaced(len(names), count):
-        shutil.copy(images / names[index], folder / names[index])
+    for photo, copy in copies:
+        shutil.copy(images / photo, folder / copy)
+    return folder, {Path(copy).stem: Path(photo).stem for photo, copy in copies}
+
+
+def named_as_photos(work: Path, stems: dict[str, str], folder: Path) -> Path:
+    """``work``'s transforms.json with each frame named by its photo's stem (a copy in ``folder``), for the
+    comparison with the published poses; a repeated photo's copy left out (its photo is compared once)."""
+    transforms = json.loads((work / "transforms.json").read_text())
+    frames = []
+    for frame in transforms["frames"]:
+        stem = Path(frame["file_path"]).stem
+        if stem.endswith("_again") and stems.get(stem) == stem.removesuffix("_again"):
+            continue
+        frames.append({**frame, "file_path": f"images/{stems.get(stem, stem)}{Path(frame['file_path']).suffix}"})
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "transforms.json").write_text(json.dumps({**transforms, "frames": frames}))
     return folder
 
 
@@ -155,6 +183,9 @@ def main() -> None:
     parser.add_argument("--photo-change", default=None, help="dark:F: the photos' values times F first (0 < F <= 1)")
     parser.add_argument("--mapper", choices=("auto", "global", "incremental"), default="auto")
     parser.add_argument("--photos", type=int, default=None, help="only this many photos, evenly spaced by name (default all)")
+    parser.add_argument("--offset", type=int, default=0, help="with --photos: start the evenly spaced pick this many photos on")
+    parser.add_argument("--repeat", action="store_true", help="hand the first chosen photo twice (a repeated photo)")
+    parser.add_argument("--shuffle", action="store_true", help="name the photos in a shuffled order (photo_<k>)")
     parser.add_argument("--max-size", type=int, default=1600, help="the long side the features are read at (default 1600, the command's)")
     parser.add_argument("--mappers-over-seeds", type=int, nargs="*", default=[], help="seeds of the mapper comparison (none: skip it)")
     parser.add_argument("--work", type=Path, default=None, help="where to write the processed capture (default: a temporary folder)")
@@ -182,7 +213,7 @@ def main() -> None:
 
     with temporary:
         temporary = temporary.name
-        images = chosen_photos(args.root / args.images, args.photos, Path(temporary) / "photos")
+        images, stems = chosen_photos(args.root / args.images, args.photos, Path(temporary) / "photos", args.offset, args.repeat, args.shuffle)
         if args.photo_change:
             images = changed_photos(images, args.photo_change, Path(temporary) / "changed_photos")
         work = args.work or Path(temporary) / "capture"
@@ -192,16 +223,17 @@ def main() -> None:
         started = time.perf_counter()
         head = {**start_result("cpu"), "benchmark": "process_data", "root": str(args.root),
                 "capture": "procedural turntable" if args.turntable else args.root.name, "images": args.images,
-                "masks": args.masks, "mask_change": args.mask_change, "photo_change": args.photo_change, "photos": args.photos, "process_capture": settings}
-        try:  # min_registered=0, min_mask_agreement=0: the photos that register are compared, however few, however wrong
+                "masks": args.masks, "mask_change": args.mask_change, "photo_change": args.photo_change, "photos": args.photos,
+                "offset": args.offset, "repeat": args.repeat, "shuffle": args.shuffle, "process_capture": settings}
+        try:  # min_registered=0, min_mask_agreement=0, check_poses=false: the photos that register are compared, however few, however wrong
             report = process_capture(images, work, mapper=args.mapper, max_size=args.max_size, progress=False, seed=0, masks=masks,
-                                     **{"min_registered": 0.0, "min_mask_agreement": 0.0, **settings})
+                                     **{"min_registered": 0.0, "min_mask_agreement": 0.0, "check_poses": False, **settings})
         except ValueError as error:  # fewer than 3 registered: nothing to compare, which is the finding
             finish({**head, "images_given": len(list(images.iterdir())), "registered": None, "failed": str(error),
                     "total_s": time.perf_counter() - started}, args.out)
             return
         total = time.perf_counter() - started
-        errors = compare_with_reference(work, reference)
+        errors = compare_with_reference(named_as_photos(work, stems, Path(temporary) / "named") if stems else work, reference)
         seeds = (mappers_over_seeds(work / "images", reference, args.mappers_over_seeds, Path(temporary), args.max_size)
                  if args.mappers_over_seeds else [])
     result = {
@@ -217,6 +249,8 @@ def main() -> None:
         # with masks: the masks' agreement with the poses, which nerf-process-data stops on under min_mask_agreement
         "silhouettes": {key: value for key, value in report["silhouettes"].items() if key != "coverage"} if "silhouettes" in report else None,
         "escalated": report.get("escalated"),
+        # the checks that need no masks (nerf-process-data stops on their flags unless check_poses=false)
+        "pose_checks": report.get("pose_checks"),
         "total_s": total, "seconds": report["seconds"],
         "mappers_over_seeds": seeds, "per_image": errors["per_image"],
     }

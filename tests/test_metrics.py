@@ -73,3 +73,17 @@ def test_the_colour_correction_keeps_a_channel_it_cannot_fit_and_refuses_mismatc
     assert torch.allclose(corrected[..., :2], photo[..., :2], atol=1e-5) and torch.equal(corrected[..., 2], render[..., 2])
     with pytest.raises(ValueError, match=r"colour_correct expects \(H, W, 3\) rgb and target of one shape"):
         colour_correct(render, photo[:4])
+
+
+def test_with_a_mask_the_colour_correction_is_fitted_to_the_mask_and_leaves_the_rest():
+    generator = torch.Generator().manual_seed(1)
+    photo = torch.zeros(20, 20, 3)  # the loader's black background round the object
+    mask = torch.zeros(20, 20, dtype=torch.bool)
+    mask[5:15, 5:15] = True
+    photo[mask] = torch.rand(100, 3, generator=generator) * 0.6 + 0.2
+    render = photo.clone()
+    render[mask] = photo[mask] * 1.2 - 0.05  # the object drawn at another exposure, the background right
+    corrected = colour_correct(render, photo, mask)
+    assert torch.allclose(corrected, photo, atol=1e-5)
+    # fitted to the whole image the black background, clipped in the photo, is left out of the fit but moved by it
+    assert float(image_metrics(colour_correct(render, photo), photo)["psnr"]) < float(image_metrics(corrected, photo)["psnr"]) - 10

@@ -48,6 +48,8 @@ from nerf_lightning.geometry.cameras import opengl_to_opencv
 EXHAUSTIVE_UP_TO = 100
 # sequential matching's loop closures: each image also with the images this many that look most like it
 LOOP_NEIGHBOURS = 8
+# overlapping matching (the stronger pass's): each image with this many next in name order, round the ring
+OVERLAP_NEIGHBOURS = 3
 
 
 def import_pycolmap() -> Any:
@@ -90,6 +92,32 @@ def sequential_pairs(count: int, overlap: int = 10, chunk: int = 100, loops: Ite
     sequential matcher finds with a vocabulary tree (:func:`loop_closure_pairs`); in chunks of ``chunk``."""
     pairs = {(i, i + step) for i in range(count) for step in [*range(1, overlap + 1), *(2**k for k in range(overlap))] if i + step < count}
     pairs = sorted(pairs | set(loops))
+    return [pairs[start : start + chunk] for start in range(0, len(pairs), chunk)]
+
+
+def overlapping_pairs(database: Path, names: Sequence[str], verified_in: Path | None = None, neighbours: int = OVERLAP_NEIGHBOURS,
+                      retrieved: int = LOOP_NEIGHBOURS, seed: int = 0, chunk: int = 50) -> list[list[tuple[int, int]]]:
+    """The pairs of ``names`` that can overlap, not every pair: each image with the ``neighbours`` next in name order,
+    round the end to the start (a turntable's or an orbit's photos, taken in order, close their ring), with the
+    ``retrieved`` images of ``database`` that look most like it (:func:`loop_closure_pairs`: photos out of order, a
+    second ring), and with those it verified a geometry with in ``verified_in`` (a first pass's database); in chunks
+    of ``chunk``, so that the progress bar and its time left move often. About (neighbours + retrieved) x count
+    pairs instead of count^2 / 2."""
+    count = len(names)
+    pairs = {(min(i, (i + step) % count), max(i, (i + step) % count)) for i in range(count) for step in range(1, neighbours + 1)
+             if (i + step) % count != i}
+    pairs |= loop_closure_pairs(database, names, neighbours=retrieved, seed=seed)
+    if verified_in is not None:
+        pycolmap = import_pycolmap()
+        place = {name: k for k, name in enumerate(names)}
+        with contextlib.closing(pycolmap.Database.open(verified_in)) as opened:
+            index = {image.image_id: place[image.name] for image in opened.read_all_images() if image.name in place}
+            pair_ids, inliers = opened.read_two_view_geometry_num_inliers()
+        for pair_id, verified in zip(pair_ids, inliers):
+            first, second = pycolmap.pair_id_to_image_pair(pair_id)
+            if verified > 0 and first in index and second in index:
+                pairs.add((min(index[first], index[second]), max(index[first], index[second])))
+    pairs = sorted(pairs)
     return [pairs[start : start + chunk] for start in range(0, len(pairs), chunk)]
 
 
@@ -308,12 +336,14 @@ def verified_matches_explained(database: Path, reconstruction: Any, threshold_px
 
 def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher: str, mapper: str = "auto", camera_model: str = "OPENCV",
                 single_camera: bool = True, max_size: int = 1600, max_features: int = 8192, seed: int = 0, masks: Path | None = None,
-                progress: bool = True, verbose: bool = False, strong: bool = False) -> tuple[Any | None, dict[str, float], dict[str, Any]]:
+                progress: bool = True, verbose: bool = False, strong: bool = False,
+                verified_in: Path | None = None) -> tuple[Any | None, dict[str, float], dict[str, Any]]:
     """Structure from motion of ``images/<name>`` for each name: ``colmap_dir/database.db`` and the chosen model,
     also written to ``colmap_dir/sparse/0`` (COLMAP's binary format).
 
     Args:
-        matcher: ``exhaustive`` or ``sequential`` (see :func:`choose_matcher`).
+        matcher: ``exhaustive`` or ``sequential`` (see :func:`choose_matcher`), or ``overlapping``
+            (:func:`overlapping_pairs`, with the pairs ``verified_in`` a first pass's database: the stronger pass's).
         mapper: ``global``, ``incremental`` (see :func:`map_images`) or ``auto``: both, and the model that explains
             the most verified matches kept (:func:`verified_matches_explained`).
         camera_model: one of :data:`CAMERA_MODELS`.
@@ -327,15 +357,16 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
         each stage took, and of each mapper run its images registered and fraction of verified matches explained
         (``mappers``), which was kept (``mapper``), and what features and matching left (``matches``,
         :func:`database_statistics`), and the cameras whose EXIF focal length was corrected (``focal_priors``,
-        :func:`correct_focal_priors`).
+        :func:`correct_focal_priors`), and the other mapper's model (``other_model``; None where only one built a
+        model), which :func:`~nerf_lightning.capture.model_checks.pose_checks` compares the kept one with.
     """
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)} (models whose lenses the transforms.json "
                          f"loader can undo), got '{camera_model}'")
     if mapper not in MAPPERS:
         raise ValueError(f"mapper must be one of {', '.join(MAPPERS)}, got '{mapper}'")
-    if matcher not in ("exhaustive", "sequential"):
-        raise ValueError(f"reconstruct: matcher must be exhaustive or sequential, got '{matcher}'")
+    if matcher not in ("exhaustive", "sequential", "overlapping"):
+        raise ValueError(f"reconstruct: matcher must be exhaustive, sequential or overlapping, got '{matcher}'")
     colmap_dir.mkdir(parents=True, exist_ok=True)
     database = colmap_dir / "database.db"
     seconds = {}
@@ -348,6 +379,8 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
         started = time.perf_counter()
         if matcher == "exhaustive":
             pairs = exhaustive_pairs(len(names))
+        elif matcher == "overlapping":
+            pairs = overlapping_pairs(database, names, verified_in, seed=seed)
         else:
             pairs = sequential_pairs(len(names), loops=loop_closure_pairs(database, names, seed=seed))
         match_features(database, names, pairs, colmap_dir / "pairs", seed, progress, guided=strong)
@@ -369,12 +402,13 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
     for name in tried:
         shutil.rmtree(colmap_dir / f"models_{name}", ignore_errors=True)
     if not candidates:
-        return None, seconds, {"mapper": None, "mappers": tried, "matches": matched, "focal_priors": focal_priors}
+        return None, seconds, {"mapper": None, "mappers": tried, "matches": matched, "focal_priors": focal_priors, "other_model": None}
     kept = max(candidates, key=lambda name: candidates[name][0])
     model = candidates[kept][1]
     (colmap_dir / "sparse" / "0").mkdir(parents=True, exist_ok=True)
     model.write(colmap_dir / "sparse" / "0")
-    return model, seconds, {"mapper": kept, "mappers": tried, "matches": matched, "focal_priors": focal_priors}
+    other = next((candidate for name, (_, candidate) in candidates.items() if name != kept), None)
+    return model, seconds, {"mapper": kept, "mappers": tried, "matches": matched, "focal_priors": focal_priors, "other_model": other}
 
 
 def camera_intrinsics(camera: Any) -> dict[str, Any]:

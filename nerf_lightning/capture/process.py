@@ -54,6 +54,7 @@ from nerf_lightning.capture.images import (
     write_capture_mask,
     write_downscaled,
 )
+from nerf_lightning.capture.model_checks import pose_checks
 from nerf_lightning.capture.silhouettes import silhouette_agreement
 from nerf_lightning.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
 from nerf_lightning.errors import ensure_writable
@@ -102,6 +103,14 @@ def model_score(posed: set[str], agreement: dict[str, Any] | None, masks: bool) 
 
 ADVICE = ("photos with more overlap (each part of the scene in 3 or more of them, taken a step apart, not turning on "
           "the spot), sharper ones (more light, steadier hands), a textured subject")
+
+
+def matches_said(matches: dict[str, float]) -> str:
+    """What features and matching left (:func:`~nerf_lightning.capture.colmap.database_statistics`), said in words:
+    where a capture that registers few is lost."""
+    return (f"{matches['keypoints_mean']:.0f} features a photo on average, {matches['keypoints_min']} in the fewest; "
+            f"{matches['pairs_verified']} of {matches['pairs_matched']} pairs matched verified a geometry, "
+            f"{matches['inliers_per_verified_pair']:.0f} matches a verified pair")
 
 
 def write_photos(paths: Sequence[Path], staging: Path, downscales: Sequence[int], progress: bool) -> dict[str, tuple[int, int]]:
@@ -277,6 +286,7 @@ def process_capture(
     seed: int = 0,
     masks: str | Path | None = None,
     min_mask_agreement: float = 0.7,
+    check_poses: bool = True,
     mask_object: str = "white",
     progress: bool = True,
     verbose: bool = False,
@@ -311,6 +321,9 @@ def process_capture(
         min_mask_agreement: with masks, stop with an error when the median photo's mask agrees with the model's
             poses less than this (:mod:`~nerf_lightning.capture.silhouettes`: the fraction of its mask's rays that
             meet the masks' visual hull); 0 keeps the model whatever it is.
+        check_poses: stop with an error where the checks that need no masks find the model likely wrong
+            (:func:`~nerf_lightning.capture.model_checks.pose_checks`: the two mappers disagree, or the photos are
+            tied together by too few matches); false keeps it, the report's ``pose_checks`` still saying what they found.
         progress: progress bars on stderr.
         verbose: COLMAP's own log on stderr.
     Returns:
@@ -398,15 +411,18 @@ def process_capture(
             stronger = escalated_settings(int(max_size), int(max_features), sizes)
             why = (f"COLMAP registered {len(posed)} of the {len(names)} images" if too_few else
                    f"the masks agree with the poses in {100.0 * agreement['median_coverage']:.0f}% of the median photo's rays")
-            log.warning("%s; posing them again with stronger settings: features at %d px, %d of them, affine shapes and "
-                        "domain-size pooling, guided matching (slower)", why, stronger["max_size"], stronger["max_features"])
+            log.warning("%s (%s); posing them again with stronger settings: features at %d px, %d of them, affine shapes and "
+                        "domain-size pooling, guided matching, on the pairs that can overlap (neighbours in name order, the "
+                        "photos most alike, the pairs verified already; slower)", why, matches_said(mapping["matches"]),
+                        stronger["max_size"], stronger["max_features"])
             again, again_seconds, again_mapping = reconstruct(
-                staging / "images", names, staging / "colmap_escalated", matcher=chosen, mapper=mapper, camera_model=camera_model,
+                staging / "images", names, staging / "colmap_escalated", matcher="overlapping", mapper=mapper, camera_model=camera_model,
                 single_camera=single_camera, seed=seed, masks=staging / "colmap" / "masks" if fractions else None, progress=progress,
-                verbose=verbose, **stronger)
+                verbose=verbose, verified_in=staging / "colmap" / "database.db", **stronger)
             again_posed = registered_names(again) if again is not None else set()
             again_agreement = agreement_with(again, again_posed)
             report["escalated"] = {"why": "registered" if too_few else "masks", "registered_before": len(posed),
+                                   "matches_before": mapping["matches"], "matches_after": again_mapping["matches"],
                                    "registered_after": len(again_posed),
                                    "settings": {key: value for key, value in stronger.items() if key != "strong"},
                                    "seconds": round(sum(again_seconds.values()), 2)}
@@ -425,6 +441,10 @@ def process_capture(
         seconds.update(stage_seconds)
         unregistered = [name for name in names if name not in posed]
         check_registered(len(posed), unregistered, len(names), source, chosen, min_registered, escalated="escalated" in report)
+        report["pose_checks"] = pose_checks(staging / "colmap" / "database.db", model, mapping["other_model"])
+        if check_poses and report["pose_checks"]["flags"]:
+            raise ValueError(f"COLMAP registered {len(posed)} images of {source}, but its model is likely wrong: "
+                             + "; ".join(report["pose_checks"]["flags"]) + f"; {ADVICE}; or check_poses=false to keep this model")
 
         write_started = time.perf_counter()
         transforms = reconstruction_to_transforms(model, mask_folder="masks" if fractions else None)

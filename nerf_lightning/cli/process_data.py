@@ -20,7 +20,7 @@ def process(cfg: DictConfig) -> dict:
                            single_camera=cfg.single_camera, max_size=cfg.max_size, max_features=cfg.max_features,
                            downscales=list(cfg.downscales), min_registered=cfg.min_registered, escalate=cfg.escalate, seed=cfg.seed,
                            masks=None if cfg.masks in (None, "") else str(cfg.masks), mask_object=str(cfg.mask_object),
-                           min_mask_agreement=cfg.min_mask_agreement, progress=cfg.progress, verbose=cfg.verbose)
+                           min_mask_agreement=cfg.min_mask_agreement, check_poses=cfg.check_poses, progress=cfg.progress, verbose=cfg.verbose)
 
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="process_data")

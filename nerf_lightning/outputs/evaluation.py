@@ -74,7 +74,8 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
     masks, each view is scored over the whole image (with ``background``, the photo composited onto ``background``
     outside its mask, as training saw it) and over its mask alone (``psnr_masked``, ``ssim_masked``). With ``lpips``,
     each view's ``lpips`` too (over the whole image). Each colour score again as ``cc_<name>``, of the render mapped to
-    the photo's colours (:func:`~nerf_lightning.metrics.colour_correct`, fitted over the whole image)."""
+    the photo's colours (:func:`~nerf_lightning.metrics.colour_correct`, fitted over the whole image; with masks in
+    ``background`` mode, over the mask, which alone it changes)."""
     rows = []
     for index in tqdm(range(len(views)), desc=f"evaluating {len(views)} views", unit="view"):
         started = time.perf_counter()
@@ -84,7 +85,8 @@ def evaluate_views(model: RendersCamera, views: Views, output_dir: Path | None =
         batch = view_batch(views, index, masks, background)  # the target as validation sees it
         target, mask = batch["image"], batch.get("object_mask")
         metrics = image_metrics(frame["rgb"], target, frame["depth"] if true_depth is not None else None, true_depth, mask)
-        corrected = colour_correct(frame["rgb"].clamp(0.0, 1.0), target)
+        # with data.masks=background the photo's background is the loader's colour: the map fitted to the object alone
+        corrected = colour_correct(frame["rgb"].clamp(0.0, 1.0), target, mask if masks == "background" else None)
         metrics.update({f"cc_{key}": value for key, value in image_metrics(corrected, target, mask=mask).items()})
         if lpips is not None:
             metrics["lpips"] = lpips(frame["rgb"].clamp(0.0, 1.0), target)

@@ -218,6 +218,10 @@ def test_ten_fox_photos_are_posed_as_published(tmp_path, mapper):
     assert report["registered"] == 10 and report["unregistered"] == [] and report["matcher"] == "exhaustive"
     assert set(report["mappers"]) == ({"global", "incremental"} if mapper == "auto" else {mapper}) and report["mapper"] in report["mappers"]
     assert report["verified_matches_explained"] > 0.9
+    # a right model: the checks that need no masks flag nothing (with mapper=auto the two mappers agree)
+    checks = report["pose_checks"]
+    assert checks["flags"] == [] and checks["repeated"] == [] and checks["view_graph"]["median_neighbours"] >= 2
+    assert (checks["mappers"] is not None) == (mapper == "auto")
     assert report["mean_reprojection_error_px"] < 1.5 and report["mean_track_length"] > 2.0
     meta = json.loads((output / "transforms.json").read_text())
     assert (meta["w"], meta["h"]) == (270, 480) and meta["camera_model"] == "OPENCV"

@@ -277,10 +277,11 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
     def reconstruct(images, names, colmap_dir, *, masks=None, **options):  # COLMAP's part stood in for: see the test below
         handed["masks"] = sorted(path.name for path in masks.iterdir()) if masks is not None else None
         mapping = {"mapper": "incremental", "mappers": {"incremental": {"registered": len(names), "verified_matches_explained": 1.0}},
-                   "matches": {}, "focal_priors": []}
+                   "matches": MATCHES, "focal_priors": [], "other_model": None}
         return synthetic_model(list(names), SIZE), {"features": 0.0, "matching": 0.0, "mapping": 0.0}, mapping
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "pose_checks", lambda *_: {"mappers": None, "view_graph": {}, "repeated": [], "flags": []})
     output = tmp_path / "out"
     # the stand-in model's poses are not the photos': the masks' check against them is taken off, and with it the
     # second posing it would ask for (tests/capture/test_silhouettes.py, and the escalation tests below)
@@ -367,9 +368,13 @@ def test_colmap_keeps_only_the_keypoints_inside_the_masks(tmp_path, max_size):
         assert outside.mean() > 0.3, (name, outside.mean())
 
 
+# what a stand-in COLMAP's features and matching left (colmap.database_statistics)
+MATCHES = {"keypoints_mean": 812.0, "keypoints_min": 40, "pairs_matched": 15, "pairs_verified": 4, "inliers_per_verified_pair": 31.0}
+
+
 @needs_pycolmap
 @pytest.mark.parametrize("escalate", [True, False])
-def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_and_says_so(tmp_path, monkeypatch, escalate):
+def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_and_says_so(tmp_path, monkeypatch, escalate, caplog):
     import nerf_lightning.capture.process as process
     from nerf_lightning.capture import format_report, process_capture
 
@@ -382,10 +387,11 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
         colmap_dir.mkdir(parents=True, exist_ok=True)
         posed = list(names) if options.get("strong") else list(names)[:3]
         mapping = {"mapper": "incremental", "mappers": {"incremental": {"registered": len(posed), "verified_matches_explained": 1.0}},
-                   "matches": {}, "focal_priors": []}
+                   "matches": MATCHES, "focal_priors": [], "other_model": None}
         return synthetic_model(posed, SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "pose_checks", lambda *_: {"mappers": None, "view_graph": {}, "repeated": [], "flags": []})
     # the stand-in models' poses are not the photos': their masks are taken to agree, so that the count alone decides
     monkeypatch.setattr(process, "silhouette_agreement",
                         lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
@@ -396,9 +402,15 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
         return
     # the photos are 161 px across: features at their own size or max_size, whichever is more; twice the features
     assert calls[1]["strong"] and calls[1]["max_size"] == 1600 and calls[1]["max_features"] == 16384
+    # on the pairs that can overlap, the first pass's verified ones among them, not on every pair
+    assert calls[0]["matcher"] == "exhaustive" and calls[1]["matcher"] == "overlapping"
+    assert calls[1]["verified_in"] == calls[1]["verified_in"].parent.parent / "colmap" / "database.db"
+    assert report["escalated"]["matches_before"] == MATCHES
     assert report["registered"] == 6 and report["escalated"]["registered_before"] == 3 and report["escalated"]["registered_after"] == 6
     assert len(json.loads((tmp_path / "out" / "transforms.json").read_text())["frames"]) == 6
     assert "too few registered at first (3): posed again with stronger settings" in format_report(report)
+    # why the first pass registered few, in the warning: the features a photo and the matches a pair
+    assert "812 features a photo on average, 40 in the fewest; 4 of 15 pairs matched verified a geometry, 31 matches a verified pair" in caplog.text
 
 
 def test_the_model_kept_is_the_one_with_more_photos_posed_weighted_by_the_masks_agreement():
@@ -435,13 +447,14 @@ def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_k
         calls.append(options)
         colmap_dir.mkdir(parents=True, exist_ok=True)
         mapping = {"mapper": "global", "mappers": {"global": {"registered": len(names), "verified_matches_explained": 1.0}},
-                   "matches": {}, "focal_priors": []}
+                   "matches": MATCHES, "focal_priors": [], "other_model": None}
         return synthetic_model(list(names), SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
 
     def silhouette_agreement(transforms, points, staging, downscales, seed=0):
         return {"median_coverage": left.pop(0), "views_below": [], "coverage": {}, "masks_read": "masks"}
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "pose_checks", lambda *_: {"mappers": None, "view_graph": {}, "repeated": [], "flags": []})
     monkeypatch.setattr(process, "silhouette_agreement", silhouette_agreement)
     report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.4, progress=False)
     assert left == [] and report["registered"] == 6

@@ -435,16 +435,19 @@ def camera_from_world(image: Any) -> np.ndarray:
     return w2c
 
 
-def reconstruction_to_transforms(reconstruction: Any, image_folder: str = "images", mask_folder: str | None = None) -> dict[str, Any]:
+def reconstruction_to_transforms(reconstruction: Any, image_folder: str = "images", mask_folder: str | None = None,
+                                 only: set[str] | None = None) -> dict[str, Any]:
     """A COLMAP model as a nerfstudio ``transforms.json`` dict, registered images in name order.
 
     Each frame's ``transform_matrix`` is its OpenGL camera-to-world (x right, y up, looking down -z): the inverse of
     COLMAP's world-to-camera with the camera's y and z axes flipped, in COLMAP's world coordinates (no axes swapped;
     the loader centres, orients and scales the world itself). Intrinsics are global keys when the images share one
-    camera, per-frame keys otherwise. ``ply_file_path`` names the sparse points, written beside it. With
+    camera, per-frame keys otherwise. ``only``: the names of the registered images to write (None: all). ``ply_file_path``
+    names the sparse points, written beside it. With
     ``mask_folder``, each frame's ``mask_path`` (nerfstudio's key) names ``<mask_folder>/<image stem>.png``.
     """
-    images = sorted((reconstruction.image(image_id) for image_id in reconstruction.reg_image_ids()), key=lambda image: natural_key(image.name))
+    images = sorted((reconstruction.image(image_id) for image_id in reconstruction.reg_image_ids()
+                     if only is None or reconstruction.image(image_id).name in only), key=lambda image: natural_key(image.name))
     cameras = {image.camera_id for image in images}
     meta: dict[str, Any] = camera_intrinsics(reconstruction.camera(next(iter(cameras)))) if len(cameras) == 1 else {}
     frames = []

@@ -1,10 +1,12 @@
 """Loop closures for sequential matching: images paired with those that look most alike them (capture/retrieval.py),
-on descriptors of a made-up ring of views and on the procedural turntable's own SIFT features."""
+on descriptors of a made-up ring of views and on the procedural turntable's own SIFT features; the stronger pass's
+pairs that can overlap."""
 
 from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,3 +131,18 @@ def test_the_turntables_own_features_pair_photos_that_see_the_same_side(tmp_path
     drawn = [tuple(generator.choice(len(names), 2, replace=False)) for _ in range(2000)]
     by_chance = np.mean([angle(i, j) < 45.0 for i, j in drawn])
     assert near > 0.6 and near > 2 * by_chance, (near, by_chance)
+
+
+def test_the_stronger_pass_matches_neighbours_round_the_ring_the_alike_and_the_verified(monkeypatch):
+    """The stronger pass's pairs: each photo with its next 3 round the ring (the last with the first: a turntable's
+    photos close it), the retrieved ones, and those a first pass verified; each pair once, far fewer than every pair."""
+    import nerf_lightning.capture.colmap as colmap
+
+    names = [f"turn_{k:03d}.jpg" for k in range(40)]
+    monkeypatch.setattr(colmap, "loop_closure_pairs", lambda database, names, neighbours, seed: {(0, 20), (5, 25), (0, 1)})
+    chunks = colmap.overlapping_pairs(Path("unused.db"), names, chunk=25)
+    pairs = [pair for chunk in chunks for pair in chunk]
+    assert len(pairs) == len(set(pairs)) and all(len(chunk) <= 25 for chunk in chunks)
+    assert {(0, 1), (0, 3), (36, 39), (0, 39), (0, 37), (1, 39)} <= set(pairs) and (0, 4) not in pairs  # round the ring, 3 ahead
+    assert {(0, 20), (5, 25)} <= set(pairs)  # the photos most alike
+    assert len(pairs) == 40 * 3 + 2 < 40 * 39 // 2

@@ -3,20 +3,21 @@
 A model can reproject its own points to a third of a pixel and explain 95 % of its verified matches and still be
 wrong: photos too far apart share few matches (20 of moldGoldCape's photos, 18 degrees apart, give 20 verified pairs
 among 15 posed photos), and COLMAP's global mapper places a photo from its pairs' relative poses alone, which for a
-pair of few matches on a nearly flat patch can be any of several. Measured on right and wrong models made from the
-shared captures (docs/guides/real-captures.md, "Posing that knows when it is wrong"), what parts them is:
+pair of few matches can be any of several. Calibrated on right and wrong models made from the shared captures
+(subsets of fox's and the cape's photos, with and without masks, a shuffled order, a repeated photo, the procedural
+turntable without masks: docs/guides/real-captures.md, "Posing that knows when it is wrong"), what parts them is:
 
-- **photos posed on almost no points** (:func:`thinly_posed`). In each wrong model most photos see 2 to 4 of its 3D
-  points (9 of the cape's 15); in every right one each sees a hundred or more. COLMAP's incremental mapper does not
-  register a photo on fewer than 30 points it sees (its absolute pose's inlier floor); a photo the global mapper
-  placed on fewer has nothing that holds it there. ``nerf-process-data`` leaves such photos out, names them, and
-  then applies its ``min_registered`` floor to the photos left;
-- **one picture twice** (:func:`repeated_photos`): two photos whose matches do not move. One repeated photo is
-  harmless and named; most photos static against one another is a turntable photographed without masks, where the
-  room stands still and the model is of the room, not the object: refused.
+- **photos posed on almost no points** (:func:`thinly_posed`): in the wrong models most photos see 0 to 5 of the
+  model's 3D points; in the right ones every photo but a stray one sees 6 or more. Such a photo is left out and named
+  (``nerf-process-data`` then applies its ``min_registered`` floor to the photos left);
+- **cameras spread far wider than they see** (:func:`camera_spread`): 11 to 49 times the distance at which they see
+  the points in the wrong models, 0.1 to 1.05 in the right ones. Refused;
+- **one picture twice** (:func:`repeated_photos`): two photos whose matches do not move. One is harmless and named;
+  most photos static against one another is a turntable photographed without masks, where the room stands still and
+  the model is of the room, not the object. Refused.
 
 Also recorded, as evidence rather than verdicts: how the photos are tied together (:func:`view_graph`) and whether
-COLMAP's two mappers agree (:func:`mappers_agreement`; they disagree on right fox subsets too, where the model kept,
+COLMAP's two mappers agree (:func:`mappers_agreement`; on right fox subsets they disagree too, where the model kept,
 the one that explains more verified matches, is the right one).
 """
 
@@ -33,9 +34,13 @@ from nerf_lightning.capture.colmap import camera_from_world, import_pycolmap
 
 # a pair holds two photos together when it has at least this many verified inlier matches (COLMAP's own floor is 15)
 STRONG_PAIR = 30
-# a photo seeing fewer of the model's 3D points than this is not held in place by them: the incremental mapper's
-# floor for registering a photo (IncrementalMapper's abs_pose_min_num_inliers)
-MIN_POINTS = 30
+# a photo seeing fewer of the model's 3D points than this is not held in place by them: six is the fewest that fix a
+# camera's pose by the direct linear transform. In the wrong models of the calibration most photos see 0 to 5; in
+# the right ones a few photos see 6 to 30, posed within a degree or two, which a higher floor would throw away
+MIN_POINTS = 6
+# cameras spread wider than this many times the median distance at which they see the model's points: in the wrong
+# models 11 to 49, in the right ones 0.1 (forward-facing) to 1.05 (all round an object)
+MAX_SPREAD = 4.0
 # two photos are one picture twice when their matches move less than this (pixels, median) and cover this share of
 # the fewer keypoints
 REPEATED_PX = 1.0
@@ -128,6 +133,24 @@ def thinly_posed(reconstruction: Any) -> list[str]:
                   if reconstruction.image(image_id).num_points3D < MIN_POINTS)
 
 
+def camera_spread(reconstruction: Any) -> float:
+    """How far the posed cameras are spread against how far they see: the root mean square distance of their centres
+    from their mean over the median distance from a camera to the points it sees. Around 1 for photos walked round
+    an object, a few tenths for a forward-facing capture, near 0 where the model says the camera did not move."""
+    centres, distances = [], []
+    for image_id in reconstruction.reg_image_ids():
+        image = reconstruction.image(image_id)
+        centre = np.linalg.inv(camera_from_world(image))[:3, 3]
+        centres.append(centre)
+        seen = [reconstruction.points3D[point.point3D_id].xyz for point in image.points2D if point.has_point3D()]
+        if seen:
+            distances.append(float(np.median(np.linalg.norm(np.asarray(seen) - centre, axis=1))))
+    if len(centres) < 2 or not distances:
+        return float("nan")
+    centres = np.asarray(centres)
+    return float(np.sqrt(((centres - centres.mean(0)) ** 2).sum(1).mean()) / max(np.median(distances), 1e-12))
+
+
 def pose_flags(checks: dict[str, Any], registered: int) -> dict[str, list[str]]:
     """What :func:`pose_checks` found, as sentences: ``refuse`` (the model is of something else than the capture's
     subject) and ``warn`` (photos left out, a photo twice)."""
@@ -136,6 +159,12 @@ def pose_flags(checks: dict[str, Any], registered: int) -> dict[str, list[str]]:
     if thin:
         warn.append(f"{len(thin)} of the {registered} posed photos see fewer than {MIN_POINTS} of the model's points, so nothing holds "
                     f"them in place and they are left out: {', '.join(thin[:6])}{', ...' if len(thin) > 6 else ''}")
+    spread = checks.get("camera_spread")
+    if spread is not None and spread > MAX_SPREAD:
+        refuse.append(f"the posed cameras lie {spread:.0f} times farther apart than they are from what they see (a right model's "
+                      f"cameras, walked round an object, about 1; under {MAX_SPREAD:g} is taken as right), so the photos are strung "
+                      "together in the wrong places: the photos are likely too far apart; take one every 5 to 10 degrees round the "
+                      "object, each overlapping its neighbours by two thirds")
     repeated = checks["repeated"]
     in_repeats = {name for pair in repeated for name in pair}
     if registered and len(in_repeats) >= MOSTLY_REPEATED * registered:
@@ -153,7 +182,7 @@ def pose_checks(database: Path, kept: Any, other: Any | None) -> dict[str, Any]:
     make of it (``refuse`` and ``warn``, :func:`pose_flags`)."""
     seen = {kept.image(image_id).name: int(kept.image(image_id).num_points3D) for image_id in kept.reg_image_ids()}
     checks: dict[str, Any] = {"thinly_posed": thinly_posed(kept), "points_seen": dict(sorted(seen.items())),
-                              "repeated": repeated_photos(database, kept),
+                              "repeated": repeated_photos(database, kept), "camera_spread": round(camera_spread(kept), 4),
                               "view_graph": view_graph(database, kept),
                               "mappers": mappers_agreement(kept, other) if other is not None else None}
     checks.update(pose_flags(checks, kept.num_reg_images()))

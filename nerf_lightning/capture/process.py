@@ -321,9 +321,10 @@ def process_capture(
         min_mask_agreement: with masks, stop with an error when the median photo's mask agrees with the model's
             poses less than this (:mod:`~nerf_lightning.capture.silhouettes`: the fraction of its mask's rays that
             meet the masks' visual hull); 0 keeps the model whatever it is.
-        check_poses: stop with an error where the checks that need no masks find the model likely wrong
-            (:func:`~nerf_lightning.capture.model_checks.pose_checks`: the two mappers disagree, or the photos are
-            tied together by too few matches); false keeps it, the report's ``pose_checks`` still saying what they found.
+        check_poses: act on the checks that need no masks (:func:`~nerf_lightning.capture.model_checks.pose_checks`):
+            leave out the photos posed on too few of the model's points, stop where the model is wrong (its cameras
+            spread far wider than they see, or a turntable's room standing still); false keeps whatever COLMAP posed,
+            the report's ``pose_checks`` still saying what they found.
         progress: progress bars on stderr.
         verbose: COLMAP's own log on stderr.
     Returns:

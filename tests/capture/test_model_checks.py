@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+import pytest
 import torch
 
 from nerf_lightning.capture.model_checks import MIN_POINTS, mappers_agreement, pose_flags
@@ -74,3 +76,78 @@ def test_the_mappers_are_compared_without_an_alignment(monkeypatch):
     assert agreement["compared"] == 8 and agreement["median_rotation_deg"] < 1e-3 and agreement["median_direction_deg"] < 1e-3
     assert mappers_agreement("first", "elsewhere")["median_direction_deg"] > 20.0
     assert mappers_agreement("first", "two") is None  # two common photos: nothing to compare
+
+
+def test_cameras_spread_far_wider_than_they_see_refuse_the_model():
+    from nerf_lightning.capture.model_checks import MAX_SPREAD
+
+    assert pose_flags({**checks(), "camera_spread": 1.03}, registered=27)["refuse"] == []
+    [refused] = pose_flags({**checks(), "camera_spread": 11.2}, registered=40)["refuse"]
+    assert refused.startswith("the posed cameras lie 11 times farther apart than they are from what they see")
+    assert f"under {MAX_SPREAD:g} is taken as right" in refused
+
+
+class Pose:
+    def __init__(self, w2c: np.ndarray) -> None:
+        self.w2c = w2c
+
+    def matrix(self) -> np.ndarray:
+        return self.w2c[:3]
+
+
+class Seen:
+    def __init__(self, point: int | None) -> None:
+        self.point3D_id = point
+
+    def has_point3D(self) -> bool:
+        return self.point3D_id is not None
+
+
+class Point:
+    def __init__(self, xyz: np.ndarray) -> None:
+        self.xyz = xyz
+
+
+class Photo:
+    def __init__(self, c2w: np.ndarray, seen: list[int]) -> None:
+        self.cam_from_world = Pose(np.linalg.inv(c2w))
+        self.points2D = [Seen(point) for point in seen] + [Seen(None)]
+        self.num_points3D = len(seen)
+        self.name = f"photo_{id(self)}.jpg"
+
+
+class Model:
+    """What camera_spread reads of a pycolmap Reconstruction."""
+
+    def __init__(self, centres: list[np.ndarray], points: np.ndarray) -> None:
+        self.points3D = {k: Point(xyz) for k, xyz in enumerate(points)}
+        self.photos = {}
+        for k, centre in enumerate(centres):
+            c2w = np.eye(4)
+            c2w[:3, 3] = centre
+            self.photos[k] = Photo(c2w, list(range(len(points))))
+
+    def reg_image_ids(self) -> list[int]:
+        return list(self.photos)
+
+    def image(self, image_id: int) -> Photo:
+        return self.photos[image_id]
+
+
+def test_the_camera_spread_is_about_one_round_an_object_and_near_zero_for_a_camera_that_did_not_move():
+    from nerf_lightning.capture.model_checks import camera_spread, thinly_posed
+
+    points = np.random.default_rng(0).normal(scale=0.1, size=(50, 3))  # a small object at the origin
+    ring = [3.0 * np.array([math.cos(a), 0.0, math.sin(a)]) for a in np.linspace(0, 2 * math.pi, 12, endpoint=False)]
+    assert camera_spread(Model(ring, points)) == pytest.approx(1.0, abs=0.05)
+    still = [np.array([0.0, 0.0, 3.0]) + 1e-3 * k for k in range(12)]
+    assert camera_spread(Model(still, points)) < 0.01
+    # photos strung far apart, each seeing points of its own close by (as the wrong models' clusters of a photo or two)
+    flung = [30.0 * centre for centre in ring]
+    clusters = np.concatenate([centre * 0.9 + points for centre in flung])  # a tenth of the way in from each camera
+    wide = Model(flung, clusters)
+    for k, photo in enumerate(wide.photos.values()):
+        photo.points2D = [Seen(point) for point in range(50 * k, 50 * k + 50)]
+    assert camera_spread(wide) > 4.0
+    few = Model(ring[:3], points[:5])  # each photo sees 5 points: under the floor
+    assert thinly_posed(few) == sorted(photo.name for photo in few.photos.values())

@@ -4,6 +4,7 @@
     nerf-bench run cpu --data-dir ../shared/data  # the 10-minute rows the README quotes
     nerf-bench run cpu --only 'fern/*' --resume   # one scene; rows already measured on this machine are skipped
     nerf-bench report                             # docs/results.md and its plots, from docs/results/*.json
+    nerf-bench rescore cpu --only 'fox/*'         # the rows' kept checkpoints scored again (new scores)
     nerf-bench list                               # the suites and their rows
 
 For each row of the suite (scene x preset x minutes x seed, :mod:`nerf_lightning.bench.suite`): ``nerf-train``
@@ -16,6 +17,7 @@ as it is measured, and the results table regenerated.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
 import shlex
@@ -24,6 +26,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
+from fnmatch import fnmatch
 from pathlib import Path
 from typing import Any
 
@@ -217,9 +220,74 @@ def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, 
     return measured
 
 
+# -- nerf-bench rescore: a row's kept checkpoint scored again, without training it again (a score added since, such
+# as the colour-corrected cc_ ones, or LPIPS where its weights have come). Its training figures (steps, seconds a
+# step and a frame: the machine it trained on) stay; ``rescored`` says when, at which commit, and whether the raw PSNR
+# came out as before (the same checkpoint and views give the same PSNR unless the scoring changed).
+
+# what a row takes from a new eval.json's means (its last curve point too)
+SCORES = ("psnr", "ssim", "lpips", "psnr_masked", "depth_error", "cc_psnr", "cc_ssim", "cc_lpips", "cc_psnr_masked")
+
+
+def scored_checkpoint(row: dict[str, Any]) -> tuple[Path, list[str]] | None:
+    """The checkpoint a row's ``nerf-eval`` scored and that command's other arguments (the output folder left out),
+    or None where the row names no ``nerf-eval`` command."""
+    words = shlex.split(row.get("commands", {}).get("eval", ""))
+    if not words or words[0] != "nerf-eval":
+        return None
+    arguments = [word for word in words[1:] if not word.startswith("output_dir=")]
+    checkpoint = next((word.split("=", 1)[1] for word in arguments if word.startswith("ckpt_path=")), None)
+    return (Path(checkpoint), arguments) if checkpoint else None
+
+
+def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
+    """Score ``row``'s checkpoint again into ``output_dir`` and return the row with the new scores and ``rescored``."""
+    from nerf_lightning.bench.machine import source_revision
+
+    checkpoint, arguments = scored_checkpoint(row)
+    run_logged("nerf-eval", [*arguments, f"output_dir={output_dir}"], output_dir / "eval.log")
+    mean = json.loads((output_dir / "eval.json").read_text())["mean"]
+    before = row.get("psnr")
+    updated = {**row, **{key: mean.get(key) for key in SCORES}}
+    if updated.get("curve"):
+        updated["curve"] = [*row["curve"][:-1], {**row["curve"][-1], **{key: mean.get(key) for key in SCORES}}]
+    same = before is not None and mean.get("psnr") is not None and abs(mean["psnr"] - before) < 1e-3
+    updated["rescored"] = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                           "revision": source_revision(), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same}
+    return updated
+
+
+def rescore(results_path: Path, patterns: list[str] | None, work_dir: Path, report: Path | None = None,
+            readme: Path | None = None) -> list[dict[str, Any]]:
+    """Rescore the rows of ``results_path`` whose id matches one of ``patterns`` (all without) and whose checkpoint is
+    here, writing the JSON after each; the others named. Regenerates ``report`` (and ``readme``'s table)."""
+    results = read_results(results_path)
+    done = []
+    for row in list(results["rows"]):
+        if patterns and not any(fnmatch(row["id"], pattern) for pattern in patterns):
+            continue
+        found = scored_checkpoint(row)
+        if found is None or not found[0].is_file():
+            print(f"[{row['id']}, {row['machine']['name']}] skipped: its checkpoint "
+                  f"{found[0] if found else '(none named)'} is not here", flush=True)
+            continue
+        stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
+        output_dir = work_dir / "rescored" / f"{row['id'].replace('/', '_')}_{stamp}"
+        print(f"[{row['id']}, {row['machine']['name']}] scoring {found[0]} again", flush=True)
+        updated = rescore_row(row, output_dir)
+        results["rows"] = [updated if other is row else other for other in results["rows"]]
+        done.append(updated)
+        write_results(results_path, results)
+        said = "as before" if updated["rescored"]["psnr_as_before"] else f"was {updated['rescored']['psnr_before']}"
+        print(f"[{row['id']}] {updated['psnr']:.2f} dB ({said}), colour-corrected {updated.get('cc_psnr') or float('nan'):.2f} dB", flush=True)
+    if report is not None and done:
+        write_report(results_path.parent, report, readme)
+    return done
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="nerf-bench", description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog="\n".join(__doc__.splitlines()[1:8]))
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog="\n".join(__doc__.splitlines()[1:9]))
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="measure a suite's rows")
     run.add_argument("suite", help=f"a shipped suite ({', '.join(sorted(shipped_suites()))}) or a suite .yaml file")
@@ -239,10 +307,17 @@ def main(argv: list[str] | None = None) -> None:
     report.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
     report.add_argument("--report", type=Path, default=None, help="as for run")
     report.add_argument("--readme", type=Path, default=None, help="as for run")
+    again = commands.add_parser("rescore", help="score rows' kept checkpoints again (new scores; training figures kept)")
+    again.add_argument("suite", help="the suite whose results JSON holds the rows")
+    again.add_argument("--only", nargs="+", metavar="PATTERN", help="rows whose id matches a glob (default: all)")
+    again.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
+    again.add_argument("--work", type=Path, default=DEFAULT_WORK, help="where the new scores' renders go")
+    again.add_argument("--report", type=Path, default=None, help="as for run")
+    again.add_argument("--readme", type=Path, default=None, help="as for run")
     listing = commands.add_parser("list", help="the suites and their rows")
     listing.add_argument("suite", nargs="?")
     args = parser.parse_args(argv)
-    if args.command in ("run", "report"):
+    if args.command in ("run", "report", "rescore"):
         # the project's own results write its page and README; any other folder (a smoke run's, a GPU lease's) writes
         # its page beside itself and no README, unless named
         own = args.results.resolve() == DEFAULT_RESULTS.resolve()
@@ -260,6 +335,8 @@ def main(argv: list[str] | None = None) -> None:
                     print(f"  {row.id}  data={row.data or '(built in)'}  marks={', '.join(f'{m:g}' for m in row.marks)}  device={row.device}")
         elif args.command == "report":
             print(write_report(args.results, args.report, args.readme))
+        elif args.command == "rescore":
+            rescore(args.results / f"{Path(args.suite).stem}.json", args.only, args.work, args.report, args.readme)
         else:
             suite = load_suite(args.suite)
             data_dir = args.data_dir or Path(os.environ.get(DATA_DIR_VARIABLE, DEFAULT_DATA_DIR))

@@ -77,6 +77,26 @@ def test_the_results_table_and_plot_are_generated(quick_row):
     assert (folder / "results.md").read_text() == report
 
 
+def test_a_rows_kept_checkpoint_is_scored_again_and_a_row_without_one_is_named(quick_row):
+    folder, _ = quick_row
+    results = folder / "results" / "quick.json"
+    before = json.loads(results.read_text())["rows"][0]
+    stripped = {**before, **{key: None for key in ("cc_psnr", "cc_ssim", "cc_lpips", "cc_psnr_masked")}}  # a row scored before them
+    gone = {**before, "id": "procedural/fast/9min/seed0", "commands": {**before["commands"], "eval": "nerf-eval ckpt_path=work/gone.ckpt"}}
+    results.write_text(json.dumps({"suite": "quick", "rows": [stripped, gone]}))
+    result = bench("rescore", "quick.yaml", "--results", "results", "--report", "results.md", "--work", "work", cwd=folder)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "[procedural/fast/9min/seed0, " in result.stdout and "work/gone.ckpt is not here" in result.stdout
+    rows = {row["id"]: row for row in json.loads(results.read_text())["rows"]}
+    row = rows["procedural/fast/3min/seed0"]
+    # the same checkpoint and views: the raw scores as before, the colour-corrected ones back, the training figures kept
+    assert row["psnr"] == pytest.approx(before["psnr"], abs=1e-3) and row["rescored"]["psnr_as_before"]
+    assert row["cc_psnr"] == pytest.approx(before["cc_psnr"], abs=1e-3) and row["curve"][-1]["cc_psnr"] == row["cc_psnr"]
+    assert (row["steps"], row["seconds_per_step"], row["date"]) == (before["steps"], before["seconds_per_step"], before["date"])
+    assert "rescored" not in rows["procedural/fast/9min/seed0"]
+    results.write_text(json.dumps({"suite": "quick", "rows": [before]}))  # as the other tests of the module expect it
+
+
 def test_rows_kept_outside_docs_results_leave_the_readmes_table_alone(quick_row, tmp_path):
     """A run or report into another results folder (a GPU lease's, a smoke run's) does not replace the README's table
     with its own rows; --readme names one to write."""

@@ -192,8 +192,9 @@ def test_the_gains_are_centred_a_colour_each_and_leave_the_background():
 
 def test_photos_of_other_exposures_and_white_balance_are_learnt_as_their_gains(one_thread):
     """Two of six training photos were taken at other settings (one 0.7 times as bright, one warmer: red 1.25, blue
-    0.8). With the gains, those two views are fitted, their learnt gains (against the mean photo) are the ones they
-    were taken with, and the held-out views, drawn at the mean, are no worse than without."""
+    0.8). With the gains, those two views are fitted (21.0 and 20.2 dB without, 33.7 and 30.2 with, after 240 steps),
+    their learnt gains (against the mean photo) are the ones they were taken with, and the held-out views, drawn at
+    the mean, are no worse than without (25.7 without, 27.6 with: the Gaussians no longer split the difference)."""
     truth = tiny_model()
     train_c2w, held_c2w = arc_cameras(6), arc_cameras(3, shift=0.05)
     photos, held = photos_of(truth, train_c2w), photos_of(truth, held_c2w)

@@ -304,6 +304,17 @@ def sampson_distance(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, p
     return np.sqrt(numerator / np.maximum(denominator, 1e-30))
 
 
+def verified_pairs(opened: Any, registered: set[int]) -> Iterator[tuple[int, int, Any]]:
+    """The geometrically verified pairs of an opened COLMAP database between ``registered`` image ids, as (first id,
+    second id, two-view geometry) for those with inlier matches."""
+    pycolmap = import_pycolmap()
+    pair_ids, geometries = opened.read_two_view_geometries()
+    for pair_id, geometry in zip(pair_ids, geometries):
+        first, second = pycolmap.pair_id_to_image_pair(pair_id)
+        if first in registered and second in registered and len(geometry.inlier_matches) > 0:
+            yield first, second, geometry
+
+
 def verified_matches_explained(database: Path, reconstruction: Any, threshold_px: float = 4.0) -> tuple[int, int]:
     """How many of the geometrically verified matches between registered images the model's poses explain, of how
     many: a pair whose inliers lie within ``threshold_px`` (median Sampson distance) of the epipolar geometry of its
@@ -317,12 +328,8 @@ def verified_matches_explained(database: Path, reconstruction: Any, threshold_px
     explained = total = 0
     with contextlib.closing(pycolmap.Database.open(database)) as opened:
         keypoints = {image_id: opened.read_keypoints(image_id)[:, :2] for image_id in registered}
-        pair_ids, geometries = opened.read_two_view_geometries()
-        for pair_id, geometry in zip(pair_ids, geometries):
-            first, second = pycolmap.pair_id_to_image_pair(pair_id)
+        for first, second, geometry in verified_pairs(opened, registered):
             inliers = geometry.inlier_matches
-            if first not in registered or second not in registered or len(inliers) == 0:
-                continue
             image1, image2 = reconstruction.image(first), reconstruction.image(second)
             camera1, camera2 = reconstruction.camera(image1.camera_id), reconstruction.camera(image2.camera_id)
             points1 = camera1.cam_from_img(keypoints[first][inliers[:, 0]])

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from nerf_lightning.capture.colmap import camera_from_world, import_pycolmap
+from nerf_lightning.capture.colmap import camera_from_world, import_pycolmap, verified_pairs
 
 # a pair holds two photos together when it has at least this many verified inlier matches (COLMAP's own floor is 15)
 STRONG_PAIR = 30
@@ -112,12 +112,8 @@ def repeated_photos(database: Path, reconstruction: Any) -> list[list[str]]:
     registered = set(reconstruction.reg_image_ids())
     repeated = []
     with contextlib.closing(pycolmap.Database.open(database)) as opened:
-        pair_ids, geometries = opened.read_two_view_geometries()
-        for pair_id, geometry in zip(pair_ids, geometries):
-            first, second = pycolmap.pair_id_to_image_pair(pair_id)
+        for first, second, geometry in verified_pairs(opened, registered):
             matches = geometry.inlier_matches
-            if first not in registered or second not in registered or len(matches) == 0:
-                continue
             fewer = min(opened.num_keypoints_for_image(first), opened.num_keypoints_for_image(second))
             if len(matches) < REPEATED_SHARE * fewer:
                 continue

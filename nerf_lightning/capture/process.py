@@ -72,10 +72,12 @@ ESCALATE_AGREEMENT = 0.85
 
 def escalated_settings(max_size: int, max_features: int, sizes: dict[str, tuple[int, int]]) -> dict[str, Any]:
     """The stronger settings a capture that registered too few is posed again with: features read at twice
-    ``max_size`` (up to the photos' own size: a small object then covers more pixels), twice as many of them, SIFT
-    with affine shapes and domain-size pooling, and guided matching."""
+    ``max_size`` (up to the photos' own size: a small object then covers more pixels), as many of them, SIFT with
+    affine shapes and domain-size pooling, and guided matching. Not twice as many features: guided matching's cost
+    grows with the square of their count, and on moldGoldCape's 1824 px photos 16 384 took 2.9 s a pair where 8 192
+    took 0.4 s and kept two thirds of the inliers (docs/history/issue74-photos.md)."""
     longest = max(max(size) for size in sizes.values())
-    return {"max_size": int(min(2 * max_size, max(longest, max_size))), "max_features": int(2 * max_features), "strong": True}
+    return {"max_size": int(min(2 * max_size, max(longest, max_size))), "max_features": int(max_features), "strong": True}
 
 
 def model_agreement(model: Any, posed: set[str], staging: Path, downscales: Sequence[int], seed: int) -> dict[str, Any] | None:

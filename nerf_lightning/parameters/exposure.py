@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import torch
 
-from nerf_lightning.parameters.per_view import PerViewTable
+from nerf_lightning.parameters.per_view import CentredViewTable
 
 
-class ViewExposure(PerViewTable):
+class ViewExposure(CentredViewTable):
     """Three log gains a training photo (``rows`` (V, 3): red, green, blue; zero at the start, sized by
     :meth:`~nerf_lightning.parameters.per_view.PerViewTable.resize`); a photo gets its row less the rows' mean, so
     that the mean photo, and every held-out view, is drawn with gain 1.
@@ -41,14 +41,7 @@ class ViewExposure(PerViewTable):
     """
 
     def __init__(self, lr: float = 1e-2, penalty: float = 1e-3) -> None:
-        super().__init__(3, init="zeros")
-        if lr <= 0 or penalty < 0:
-            raise ValueError(f"ViewExposure needs lr > 0 and penalty >= 0, got {lr}, {penalty}")
-        self.lr, self.penalty = lr, penalty
-
-    def centred(self) -> torch.Tensor:
-        """(V, 3) the log gains less their mean over the training photos: what each photo is drawn with."""
-        return self.rows - self.rows.mean(dim=0)
+        super().__init__(3, lr, penalty)
 
     def gains(self, camera_index: torch.Tensor) -> torch.Tensor:
         """(...) long training photos -> (..., 3) their gains (exp of the centred rows)."""
@@ -68,12 +61,3 @@ class ViewExposure(PerViewTable):
             return rgb * gain
         drawn = rgb - (1.0 - accumulation[..., None].to(rgb.dtype)) * background.to(rgb)
         return rgb + drawn * (gain - 1.0)
-
-    def penalties(self) -> dict[str, torch.Tensor]:
-        """``appearance``: ``penalty`` times the centred rows' mean squared norm (empty when ``penalty`` is 0)."""
-        if self.penalty == 0:
-            return {}
-        return {"appearance": self.penalty * self.centred().square().sum(-1).mean()}
-
-    def extra_repr(self) -> str:
-        return f"views={self.rows.shape[0]}, lr={self.lr:g}, penalty={self.penalty:g}"

@@ -53,3 +53,37 @@ class PerViewTable(nn.Module):
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         resize_to_saved(self, state_dict, prefix)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+class CentredViewTable(PerViewTable):
+    """A per-view table of corrections from the training views' mean (a per-photo colour transform): its own
+    learning rate, each view's row less the rows' mean (:meth:`centred`), so that the mean view, and every held-out
+    view, takes no correction, and an L2 penalty on the centred rows that keeps each near the mean.
+
+    Without the centring every row and what the model learns could drift together (darker colours, brighter
+    corrections), and no correction would match no training view.
+
+    Args:
+        width: numbers a row.
+        lr: the rows' learning rate (their own optimiser group).
+        penalty: weight of the centred rows' mean squared norm in the loss (``train/loss_appearance``); 0 for none.
+    """
+
+    def __init__(self, width: int, lr: float, penalty: float) -> None:
+        super().__init__(width, init="zeros")
+        if lr <= 0 or penalty < 0:
+            raise ValueError(f"{type(self).__name__} needs lr > 0 and penalty >= 0, got {lr}, {penalty}")
+        self.lr, self.penalty = lr, penalty
+
+    def centred(self) -> torch.Tensor:
+        """(V, width) the rows less their mean over the training views: what each view is corrected by."""
+        return self.rows - self.rows.mean(dim=0)
+
+    def penalties(self) -> dict[str, torch.Tensor]:
+        """``appearance``: ``penalty`` times the centred rows' mean squared norm (empty when ``penalty`` is 0)."""
+        if self.penalty == 0:
+            return {}
+        return {"appearance": self.penalty * self.centred().square().sum(-1).mean()}
+
+    def extra_repr(self) -> str:
+        return f"views={self.rows.shape[0]}, lr={self.lr:g}, penalty={self.penalty:g}"

@@ -25,10 +25,10 @@ from __future__ import annotations
 
 import torch
 
-from nerf_lightning.parameters.per_view import PerViewTable
+from nerf_lightning.parameters.per_view import CentredViewTable
 
 
-class ViewColourAffine(PerViewTable):
+class ViewColourAffine(CentredViewTable):
     """An affine colour transform for each training view (``rows`` (V, 12): ``A`` (3x3, row-major, an offset from
     the identity), then ``b`` (3,); zero at the start, sized by
     :meth:`~nerf_lightning.parameters.per_view.PerViewTable.resize`; a view gets its row less the rows' mean), with an L2
@@ -44,14 +44,7 @@ class ViewColourAffine(PerViewTable):
     """
 
     def __init__(self, lr: float = 2e-3, penalty: float = 0.01) -> None:
-        super().__init__(12, init="zeros")
-        if lr <= 0 or penalty < 0:
-            raise ValueError(f"ViewColourAffine needs lr > 0 and penalty >= 0, got {lr}, {penalty}")
-        self.lr, self.penalty = lr, penalty
-
-    def centred(self) -> torch.Tensor:
-        """(V, 12) the rows less their mean: the transforms the views get, whose mean is the identity."""
-        return self.rows - self.rows.mean(dim=0)
+        super().__init__(12, lr, penalty)
 
     def offset_and_bias(self, camera_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """() or (V',) long training views -> ``A`` (..., 3, 3) (the matrix is ``I + A``) and ``b`` (..., 3), from
@@ -77,12 +70,3 @@ class ViewColourAffine(PerViewTable):
         alpha = accumulation[..., None].to(rgb.dtype)
         drawn = rgb - (1.0 - alpha) * background.to(rgb)
         return rgb + drawn @ offset.T + alpha * bias
-
-    def penalties(self) -> dict[str, torch.Tensor]:
-        """``appearance``: ``penalty`` times the centred rows' mean squared norm (empty when ``penalty`` is 0)."""
-        if self.penalty == 0:
-            return {}
-        return {"appearance": self.penalty * self.centred().square().sum(-1).mean()}
-
-    def extra_repr(self) -> str:
-        return f"views={self.rows.shape[0]}, lr={self.lr:g}, penalty={self.penalty:g}"

@@ -281,7 +281,7 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
         return synthetic_model(list(names), SIZE), {"features": 0.0, "matching": 0.0, "mapping": 0.0}, mapping
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
-    monkeypatch.setattr(process, "pose_checks", lambda *_: {"mappers": None, "view_graph": {}, "repeated": [], "flags": []})
+    monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
     output = tmp_path / "out"
     # the stand-in model's poses are not the photos': the masks' check against them is taken off, and with it the
     # second posing it would ask for (tests/capture/test_silhouettes.py, and the escalation tests below)
@@ -368,6 +368,9 @@ def test_colmap_keeps_only_the_keypoints_inside_the_masks(tmp_path, max_size):
         assert outside.mean() > 0.3, (name, outside.mean())
 
 
+# what the pose checks find in a stand-in COLMAP's model: nothing to leave out or refuse (model_checks.pose_checks)
+NOTHING_FOUND = {"thinly_posed": [], "points_seen": {}, "repeated": [], "camera_spread": 1.0, "view_graph": {}, "mappers": None,
+                 "refuse": [], "warn": []}
 # what a stand-in COLMAP's features and matching left (colmap.database_statistics)
 MATCHES = {"keypoints_mean": 812.0, "keypoints_min": 40, "pairs_matched": 15, "pairs_verified": 4, "inliers_per_verified_pair": 31.0}
 
@@ -391,7 +394,7 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
         return synthetic_model(posed, SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
-    monkeypatch.setattr(process, "pose_checks", lambda *_: {"mappers": None, "view_graph": {}, "repeated": [], "flags": []})
+    monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
     # the stand-in models' poses are not the photos': their masks are taken to agree, so that the count alone decides
     monkeypatch.setattr(process, "silhouette_agreement",
                         lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
@@ -400,8 +403,8 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
     if not escalate:
         assert len(calls) == 1 and report["registered"] == 3 and "escalated" not in report
         return
-    # the photos are 161 px across: features at their own size or max_size, whichever is more; twice the features
-    assert calls[1]["strong"] and calls[1]["max_size"] == 1600 and calls[1]["max_features"] == 16384
+    # the photos are 161 px across: features at their own size or max_size, whichever is more; as many features (guided matching costs their square)
+    assert calls[1]["strong"] and calls[1]["max_size"] == 1600 and calls[1]["max_features"] == 8192
     # on the pairs that can overlap, the first pass's verified ones among them, not on every pair
     assert calls[0]["matcher"] == "exhaustive" and calls[1]["matcher"] == "overlapping"
     assert calls[1]["verified_in"] == calls[1]["verified_in"].parent.parent / "colmap" / "database.db"
@@ -454,7 +457,7 @@ def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_k
         return {"median_coverage": left.pop(0), "views_below": [], "coverage": {}, "masks_read": "masks"}
 
     monkeypatch.setattr(process, "reconstruct", reconstruct)
-    monkeypatch.setattr(process, "pose_checks", lambda *_: {"mappers": None, "view_graph": {}, "repeated": [], "flags": []})
+    monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
     monkeypatch.setattr(process, "silhouette_agreement", silhouette_agreement)
     report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.4, progress=False)
     assert left == [] and report["registered"] == 6
@@ -472,7 +475,7 @@ def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_k
 def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_the_photos():
     from nerf_lightning.capture.process import escalated_settings
 
-    assert escalated_settings(1600, 8192, {"a": (4000, 4000)}) == {"max_size": 3200, "max_features": 16384, "strong": True}
+    assert escalated_settings(1600, 8192, {"a": (4000, 4000)}) == {"max_size": 3200, "max_features": 8192, "strong": True}
     assert escalated_settings(1600, 8192, {"a": (2400, 1800)})["max_size"] == 2400
     assert escalated_settings(1600, 8192, {"a": (912, 912)})["max_size"] == 1600
 

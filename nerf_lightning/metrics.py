@@ -51,45 +51,33 @@ def ssim_map(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11)
     return numerator / (denominator + 1e-12)
 
 
-def colour_correct(rgb: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None, iterations: int = 5,
-                   eps: float = 0.5 / 255) -> torch.Tensor:
-    """(H, W, 3) rendered colours -> (H, W, 3) the same under the affine colour map (a 3x3 matrix and a bias, fitted
-    by least squares) that brings them closest to ``target`` (H, W, 3), clipped to [0, 1]: what the ``cc_`` scores
-    are taken on (gsplat's ``cc_psnr``; Zip-NeRF's ``color_correct``, there with quadratic terms too).
+def colour_correct(rgb: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """(H, W, 3) rendered colours -> (H, W, 3) the same under the affine colour map (a 3x3 matrix and a bias) that
+    brings them closest to ``target`` (H, W, 3) in squared error, clipped to [0, 1]: what the ``cc_`` scores are
+    taken on (gsplat's ``cc_psnr``; Zip-NeRF's ``color_correct``).
 
     The map says how far a render is from its photo in everything but a global colour transform: a held-out photo's
-    exposure and white balance, which nothing learnt from the training photos can know. As Zip-NeRF does, each colour
-    channel is fitted only over the pixels where neither the render nor the photo is clipped (within ``eps`` of 0 or
-    1), and the fit is repeated ``iterations`` times on the mapped colours, whose clipped pixels change with the map.
+    exposure and white balance, which nothing learnt from the training photos can know. It is fitted over every
+    pixel, by the squared error PSNR measures, so a corrected render never scores below the raw one (the identity is
+    one of the maps, and clipping to [0, 1] only brings colours closer to a photo's). Zip-NeRF leaves the pixels a
+    photo clips out of its fit and applies the map to them anyway; where a white or black background fills most of a
+    view that moved them far off (a procedural view scored 7 dB under its raw 18.6).
+
     With ``mask`` (H, W) bool, the map is fitted over the mask's pixels and changes only them: where a loader put a
-    background colour into the photo (``data.masks=background``), that colour is no camera's, and it sits at 0 or 1,
-    where the fit would leave it out and the map still move it. A channel with too few unclipped pixels to fit keeps
-    the identity."""
+    background colour into the photo (``data.masks=background``), that colour is no camera's. Solved on the CPU in
+    float64 by SVD (gelsd), which a flat channel (a rank-deficient fit) leaves stable."""
     if rgb.shape != target.shape or rgb.ndim != 3 or rgb.shape[-1] != 3:
         raise ValueError(f"colour_correct expects (H, W, 3) rgb and target of one shape, got {tuple(rgb.shape)} and {tuple(target.shape)}")
     if mask is not None and mask.shape != rgb.shape[:2]:
         raise ValueError(f"colour_correct expects an (H, W) mask of the images' size, got {tuple(mask.shape)} for {tuple(rgb.shape)}")
     inside = torch.ones(rgb.shape[:2], dtype=torch.bool, device=rgb.device) if mask is None else mask.bool()
-    # solved on the CPU in float64 by SVD (gelsd), which a flat or clipped channel (a rank-deficient fit) leaves stable
+    if int(inside.sum()) < 4:  # nothing to fit a map on
+        return rgb.clone()
     colours, wanted = rgb[inside].detach().cpu().double(), target[inside].detach().cpu().double()
-
-    def unclipped(values: torch.Tensor) -> torch.Tensor:
-        return (values >= eps) & (values <= 1.0 - eps)
-
-    first = unclipped(colours)  # (P, 3): where the render itself is clipped, its colour says nothing of the map
-    mapped = colours
-    for _ in range(iterations):
-        features = torch.cat([mapped, torch.ones_like(mapped[:, :1])], dim=1)  # (P, 4)
-        columns = []
-        for channel in range(3):
-            use = first[:, channel] & unclipped(mapped[:, channel]) & unclipped(wanted[:, channel])
-            if int(use.sum()) < 4:  # nothing to fit: this channel as it is
-                columns.append(torch.eye(4, dtype=features.dtype, device=features.device)[:, channel])
-                continue
-            columns.append(torch.linalg.lstsq(features[use], wanted[use, channel, None], driver="gelsd").solution[:, 0])
-        mapped = (features @ torch.stack(columns, dim=1)).clamp(0.0, 1.0)
+    features = torch.cat([colours, torch.ones_like(colours[:, :1])], dim=1)  # (P, 4)
+    transform = torch.linalg.lstsq(features, wanted, driver="gelsd").solution  # (4, 3)
     corrected = rgb.clone()
-    corrected[inside] = mapped.to(rgb)
+    corrected[inside] = (features @ transform).clamp(0.0, 1.0).to(rgb)
     return corrected
 
 

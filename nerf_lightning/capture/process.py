@@ -442,14 +442,15 @@ def process_capture(
             shutil.rmtree(staging / "colmap_escalated", ignore_errors=True)
         shutil.rmtree(staging / "colmap" / "masks", ignore_errors=True)  # masks/ holds them, by the photos' names
         seconds.update(stage_seconds)
-        checks = report["pose_checks"] = pose_checks(staging / "colmap" / "database.db", model, mapping["other_model"])
-        if check_poses and checks["refuse"]:
-            raise ValueError(f"COLMAP registered {len(posed)} images of {source}, but its model is wrong: " + "; ".join(checks["refuse"])
-                             + "; or check_poses=false to keep this model")
-        for said in checks["warn"]:
-            log.warning("%s", said)
-        if check_poses:  # the photos nothing holds in place are not posed (and count against min_registered)
-            posed -= set(checks["thinly_posed"])
+        if model is not None:  # (none: the registration check below says so)
+            checks = report["pose_checks"] = pose_checks(staging / "colmap" / "database.db", model, mapping["other_model"])
+            if check_poses and checks["refuse"]:
+                raise ValueError(f"COLMAP registered {len(posed)} images of {source}, but its model is wrong: "
+                                 + "; ".join(checks["refuse"]) + "; or check_poses=false to keep this model")
+            for said in checks["warn"]:
+                log.warning("%s", said)
+            if check_poses:  # the photos nothing holds in place are not posed (and count against min_registered)
+                posed -= set(checks["thinly_posed"])
         unregistered = [name for name in names if name not in posed]
         check_registered(len(posed), unregistered, len(names), source, chosen, min_registered, escalated="escalated" in report)
 

@@ -115,12 +115,14 @@ def named_as_photos(work: Path, stems: dict[str, str], folder: Path) -> Path:
     """``work``'s transforms.json with each frame named by its photo's stem (a copy in ``folder``), for the
     comparison with the published poses; a repeated photo's copy left out (its photo is compared once)."""
     transforms = json.loads((work / "transforms.json").read_text())
-    frames = []
+    frames, seen = [], set()
     for frame in transforms["frames"]:
         stem = Path(frame["file_path"]).stem
-        if stem.endswith("_again") and stems.get(stem) == stem.removesuffix("_again"):
+        photo = stems.get(stem, stem)
+        if photo in seen:  # a repeated photo's second copy, however it was named
             continue
-        frames.append({**frame, "file_path": f"images/{stems.get(stem, stem)}{Path(frame['file_path']).suffix}"})
+        seen.add(photo)
+        frames.append({**frame, "file_path": f"images/{photo}{Path(frame['file_path']).suffix}"})
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "transforms.json").write_text(json.dumps({**transforms, "frames": frames}))
     return folder

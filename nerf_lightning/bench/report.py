@@ -19,8 +19,8 @@ not counted; a preset whose own `max_steps` comes first stops there), then score
 held-out view through `nerf-eval`: PSNR, SSIM and LPIPS (AlexNet; – where its weights were not on the machine)
 averaged over the views, seconds a frame the median over them. *Colour-corrected* repeats the three after each render
 is mapped to its photo's colours by the affine map that fits best (a 3x3 matrix and a bias a view, least squares
-over every pixel: gsplat's `cc_` scores), which takes out what no training photo can tell, a held-out
-photo's exposure and white balance; – for rows scored before it. For a capture with masks the PSNR is the whole image's
+over every pixel, or over the mask where the loader put the background in: gsplat's `cc_` scores), which takes out
+what no training photo can tell, a held-out photo's exposure and white balance; – for rows scored before it. For a capture with masks the PSNR is the whole image's
 (with `data.masks=background`, the object over the background colour) and the mask's alone follows it. *Samples a ray*
 is what the field evaluated per ray in the last training step. The plot under each table scores
 the checkpoints kept at the minute marks the same way. The commands below each table reproduce its rows, with the

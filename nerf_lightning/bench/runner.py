@@ -248,9 +248,11 @@ def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
     run_logged("nerf-eval", [*arguments, f"output_dir={output_dir}"], output_dir / "eval.log")
     mean = json.loads((output_dir / "eval.json").read_text())["mean"]
     before = row.get("psnr")
-    updated = {**row, **{key: mean.get(key) for key in SCORES}}
+    # a score this machine cannot give (LPIPS without its weights) keeps the row's earlier one
+    scores = {key: mean[key] for key in SCORES if mean.get(key) is not None}
+    updated = {**row, **scores}
     if updated.get("curve"):
-        updated["curve"] = [*row["curve"][:-1], {**row["curve"][-1], **{key: mean.get(key) for key in SCORES}}]
+        updated["curve"] = [*row["curve"][:-1], {**row["curve"][-1], **scores}]
     same = before is not None and mean.get("psnr") is not None and abs(mean["psnr"] - before) < 1e-3
     updated["rescored"] = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                            "revision": source_revision(), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same}
@@ -259,12 +261,18 @@ def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
 
 def rescore(results_path: Path, patterns: list[str] | None, work_dir: Path, report: Path | None = None,
             readme: Path | None = None) -> list[dict[str, Any]]:
-    """Rescore the rows of ``results_path`` whose id matches one of ``patterns`` (all without) and whose checkpoint is
-    here, writing the JSON after each; the others named. Regenerates ``report`` (and ``readme``'s table)."""
+    """Rescore the rows of ``results_path`` whose id matches one of ``patterns`` (all without), measured on this
+    machine and whose checkpoint is here, writing the JSON after each; the others named. Regenerates ``report`` (and ``readme``'s table)."""
+    from nerf_lightning.bench.machine import machine
+
     results = read_results(results_path)
     done = []
     for row in list(results["rows"]):
         if patterns and not any(fnmatch(row["id"], pattern) for pattern in patterns):
+            continue
+        here = machine(row.get("device", "cpu"))["name"]
+        if row["machine"]["name"] != here:  # another machine's checkpoint path may name one of this machine's runs
+            print(f"[{row['id']}, {row['machine']['name']}] skipped: measured on another machine than this ({here})", flush=True)
             continue
         found = scored_checkpoint(row)
         if found is None or not found[0].is_file():
@@ -279,7 +287,8 @@ def rescore(results_path: Path, patterns: list[str] | None, work_dir: Path, repo
         done.append(updated)
         write_results(results_path, results)
         said = "as before" if updated["rescored"]["psnr_as_before"] else f"was {updated['rescored']['psnr_before']}"
-        print(f"[{row['id']}] {updated['psnr']:.2f} dB ({said}), colour-corrected {updated.get('cc_psnr') or float('nan'):.2f} dB", flush=True)
+        print(f"[{row['id']}] {updated.get('psnr') or float('nan'):.2f} dB ({said}), colour-corrected "
+              f"{updated.get('cc_psnr') or float('nan'):.2f} dB", flush=True)
     if report is not None and done:
         write_report(results_path.parent, report, readme)
     return done

@@ -24,6 +24,7 @@ the one that explains more verified matches, is the right one).
 from __future__ import annotations
 
 import contextlib
+import math
 from pathlib import Path
 from typing import Any
 
@@ -154,7 +155,7 @@ def pose_flags(checks: dict[str, Any], registered: int) -> dict[str, list[str]]:
     thin = checks["thinly_posed"]
     if thin:
         warn.append(f"{len(thin)} of the {registered} posed photos see fewer than {MIN_POINTS} of the model's points, so nothing holds "
-                    f"them in place and they are left out: {', '.join(thin[:6])}{', ...' if len(thin) > 6 else ''}")
+                    f"them in place (left out unless check_poses=false): {', '.join(thin[:6])}{', ...' if len(thin) > 6 else ''}")
     spread = checks.get("camera_spread")
     if spread is not None and spread > MAX_SPREAD:
         refuse.append(f"the posed cameras lie {spread:.0f} times farther apart than they are from what they see (a right model's "
@@ -163,7 +164,7 @@ def pose_flags(checks: dict[str, Any], registered: int) -> dict[str, list[str]]:
                       "object, each overlapping its neighbours by two thirds")
     repeated = checks["repeated"]
     in_repeats = {name for pair in repeated for name in pair}
-    if registered and len(in_repeats) >= MOSTLY_REPEATED * registered:
+    if registered and len(in_repeats) >= max(3, MOSTLY_REPEATED * registered):  # more than one pair: one is a repeat
         refuse.append(f"{len(in_repeats)} of the {registered} posed photos match another one without moving (the camera did not move "
                       "against what it matched: a turntable photographed without masks, whose room stands still), so the model "
                       "is of the room, not the object: give the masks (masks=)")
@@ -176,9 +177,10 @@ def pose_checks(database: Path, kept: Any, other: Any | None) -> dict[str, Any]:
     """The checks of the kept model (``other``: the other mapper's model, or None): ``thinly_posed`` (and
     ``points_seen``, each posed photo's count of the model's points), ``repeated``, ``view_graph``, ``mappers`` (:func:`mappers_agreement`; None with one model) and what they
     make of it (``refuse`` and ``warn``, :func:`pose_flags`)."""
+    spread = camera_spread(kept)
     seen = {kept.image(image_id).name: int(kept.image(image_id).num_points3D) for image_id in kept.reg_image_ids()}
     checks: dict[str, Any] = {"thinly_posed": thinly_posed(kept), "points_seen": dict(sorted(seen.items())),
-                              "repeated": repeated_photos(database, kept), "camera_spread": round(camera_spread(kept), 4),
+                              "repeated": repeated_photos(database, kept), "camera_spread": round(spread, 4) if math.isfinite(spread) else None,
                               "view_graph": view_graph(database, kept),
                               "mappers": mappers_agreement(kept, other) if other is not None else None}
     checks.update(pose_flags(checks, kept.num_reg_images()))

@@ -54,7 +54,7 @@ from nerf_lightning.capture.images import (
     write_capture_mask,
     write_downscaled,
 )
-from nerf_lightning.capture.model_checks import pose_checks
+from nerf_lightning.capture.model_checks import MIN_POINTS, pose_checks
 from nerf_lightning.capture.silhouettes import silhouette_agreement
 from nerf_lightning.capture.video import VIDEO_SUFFIXES, is_video, pick_sharp_frames
 from nerf_lightning.errors import ensure_writable
@@ -105,6 +105,17 @@ def model_score(posed: set[str], agreement: dict[str, Any] | None, masks: bool) 
 
 ADVICE = ("photos with more overlap (each part of the scene in 3 or more of them, taken a step apart, not turning on "
           "the spot), sharper ones (more light, steadier hands), a textured subject")
+
+
+# the stronger pass matches every pair up to this many pairs (a capture of 25 photos), the pairs that can overlap beyond
+STRONG_EVERY_PAIR_UP_TO = 300
+
+
+def stronger_matcher(count: int) -> str:
+    """The stronger pass's matching for ``count`` photos: every pair where they are few (a photo the first pass could
+    not register has no verified pair to follow), else the pairs that can overlap
+    (:func:`~nerf_lightning.capture.colmap.overlapping_pairs`), whose count grows with the photos, not their square."""
+    return "exhaustive" if count * (count - 1) // 2 <= STRONG_EVERY_PAIR_UP_TO else "overlapping"
 
 
 def matches_said(matches: dict[str, float]) -> str:
@@ -210,21 +221,25 @@ def check_masks_apart(masks: Path, output: Path) -> None:
 
 
 def check_registered(registered: int, unregistered: list[str], given: int, source: Path, matcher: str, min_registered: float,
-                     escalated: bool = False) -> None:
+                     escalated: bool = False, left_out: Sequence[str] = ()) -> None:
     """ValueError, one line naming the images left out and what to change, when COLMAP posed fewer than 3 images or
-    fewer than ``min_registered`` of them (``escalated``: also with the stronger settings, which the line says)."""
+    fewer than ``min_registered`` of them (``escalated``: also with the stronger settings, which the line says;
+    ``left_out``: photos it registered on too few points to hold them, named apart)."""
     change = ("try matcher=exhaustive, " if matcher == "sequential" else "") + ADVICE
+    posed = "registered" if not left_out else f"posed (registered, less {len(left_out)} seeing fewer than {MIN_POINTS} of its points)"
+    missing = "these did not register" if not left_out else "these are not posed"
     if escalated:
         change = "stronger settings (features at twice the size, affine shapes, guided matching) did not help either; " + change
-    if registered == 0:
+    if registered == 0 and not left_out:
         raise ValueError(f"COLMAP registered none of the {given} images of {source}: no two of them matched well enough "
                          f"to start a model; {change}")
+    unregistered = [*unregistered, *left_out]
     if registered < 3:
-        raise ValueError(f"COLMAP registered only {registered} of the {given} images of {source}, 3 are needed; "
-                         f"these did not register: {listed(unregistered)}; {change}")
+        raise ValueError(f"COLMAP {posed} only {registered} of the {given} images of {source}, 3 are needed; "
+                         f"{missing}: {listed(unregistered)}; {change}")
     if registered < min_registered * given:
-        raise ValueError(f"COLMAP registered {registered} of the {given} images of {source} ({100.0 * registered / given:.0f}%, "
-                         f"under min_registered={min_registered:g}); these did not register: {listed(unregistered)}; "
+        raise ValueError(f"COLMAP {posed} {registered} of the {given} images of {source} ({100.0 * registered / given:.0f}%, "
+                         f"under min_registered={min_registered:g}); {missing}: {listed(unregistered)}; "
                          f"{change}; or min_registered=0 to keep the {registered} that did")
 
 
@@ -395,8 +410,6 @@ def process_capture(
             staging / "images", names, staging / "colmap", matcher=chosen, mapper=mapper, camera_model=camera_model, single_camera=single_camera,
             max_size=int(max_size), max_features=int(max_features), seed=seed,
             masks=staging / "colmap" / "masks" if fractions else None, progress=progress, verbose=verbose)
-        posed = registered_names(model) if model is not None else set()
-
         def agreement_with(candidate: Any, candidate_posed: set[str]) -> dict[str, Any] | None:
             """With masks, their agreement with a model's poses (:func:`model_agreement`), its seconds counted."""
             if not fractions:
@@ -406,53 +419,70 @@ def process_capture(
             seconds["silhouettes"] = seconds.get("silhouettes", 0.0) + time.perf_counter() - check_started
             return found
 
+        def checked(candidate: Any, colmap_dir: Path, other: Any) -> tuple[dict[str, Any] | None, set[str]]:
+            """A model's pose checks (:func:`~nerf_lightning.capture.model_checks.pose_checks`; None without a model)
+            and the photos it poses that they hold in place (all it registered with ``check_poses=false``)."""
+            if candidate is None:
+                return None, set()
+            found = pose_checks(colmap_dir / "database.db", candidate, other)
+            return found, registered_names(candidate) - (set(found["thinly_posed"]) if check_poses else set())
+
+        checks, posed = checked(model, staging / "colmap", mapping["other_model"])
+        refused = bool(check_poses and checks and checks["refuse"])
         agreement = agreement_with(model, posed)
-        too_few = len(posed) < ESCALATE_BELOW * len(names)
+        too_few = len(posed) < ESCALATE_BELOW * len(names) or refused
         # a model that would stop on min_mask_agreement is tried again too, where that is set above ESCALATE_AGREEMENT
         disagree = agreement is not None and agreement["median_coverage"] < max(ESCALATE_AGREEMENT, min_mask_agreement)
         if escalate and (too_few or disagree):
             stronger = escalated_settings(int(max_size), int(max_features), sizes)
-            why = (f"COLMAP registered {len(posed)} of the {len(names)} images" if too_few else
+            again_matcher = stronger_matcher(len(names))
+            why = (f"COLMAP's model is wrong ({checks['refuse'][0].split(',')[0]})" if refused else
+                   f"COLMAP posed {len(posed)} of the {len(names)} images" if too_few else
                    f"the masks agree with the poses in {100.0 * agreement['median_coverage']:.0f}% of the median photo's rays")
             log.warning("%s (%s); posing them again with stronger settings: features at %d px, %d of them, affine shapes and "
-                        "domain-size pooling, guided matching, on the pairs that can overlap (neighbours in name order, the "
-                        "photos most alike, the pairs verified already; slower)", why, matches_said(mapping["matches"]),
-                        stronger["max_size"], stronger["max_features"])
+                        "domain-size pooling, guided matching, %s (slower)", why, matches_said(mapping["matches"]),
+                        stronger["max_size"], stronger["max_features"],
+                        "on every pair" if again_matcher == "exhaustive" else
+                        "on the pairs that can overlap (neighbours in name order, the photos most alike, the pairs verified already)")
             again, again_seconds, again_mapping = reconstruct(
-                staging / "images", names, staging / "colmap_escalated", matcher="overlapping", mapper=mapper, camera_model=camera_model,
+                staging / "images", names, staging / "colmap_escalated", matcher=again_matcher, mapper=mapper, camera_model=camera_model,
                 single_camera=single_camera, seed=seed, masks=staging / "colmap" / "masks" if fractions else None, progress=progress,
                 verbose=verbose, verified_in=staging / "colmap" / "database.db", **stronger)
-            again_posed = registered_names(again) if again is not None else set()
+            again_checks, again_posed = checked(again, staging / "colmap_escalated", again_mapping["other_model"])
+            again_refused = bool(check_poses and again_checks and again_checks["refuse"])
             again_agreement = agreement_with(again, again_posed)
-            report["escalated"] = {"why": "registered" if too_few else "masks", "registered_before": len(posed),
+            report["escalated"] = {"why": "model" if refused else "registered" if too_few else "masks", "registered_before": len(posed),
                                    "matches_before": mapping["matches"], "matches_after": again_mapping["matches"],
-                                   "registered_after": len(again_posed),
+                                   "registered_after": len(again_posed), "matcher": again_matcher,
                                    "settings": {key: value for key, value in stronger.items() if key != "strong"},
                                    "seconds": round(sum(again_seconds.values()), 2)}
             if fractions:
                 report["escalated"].update({"mask_agreement_before": agreement_of(agreement),
                                             "mask_agreement_after": agreement_of(again_agreement)})
             seconds["escalation"] = sum(again_seconds.values())
-            better = model_score(again_posed, again_agreement, bool(fractions)) > model_score(posed, agreement, bool(fractions))
+            # a model the checks refuse is never kept over one they do not
+            better = (not again_refused, model_score(again_posed, again_agreement, bool(fractions))) > \
+                     (not refused, model_score(posed, agreement, bool(fractions)))
             report["escalated"]["kept"] = "stronger" if better else "first"
             if better:
                 shutil.rmtree(staging / "colmap", ignore_errors=True)
                 (staging / "colmap_escalated").rename(staging / "colmap")
-                model, mapping, posed, agreement = again, again_mapping, again_posed, again_agreement
+                model, mapping, posed, agreement, checks = again, again_mapping, again_posed, again_agreement, again_checks
             shutil.rmtree(staging / "colmap_escalated", ignore_errors=True)
         shutil.rmtree(staging / "colmap" / "masks", ignore_errors=True)  # masks/ holds them, by the photos' names
         seconds.update(stage_seconds)
-        if model is not None:  # (none: the registration check below says so)
-            checks = report["pose_checks"] = pose_checks(staging / "colmap" / "database.db", model, mapping["other_model"])
+        left_out = []
+        if checks is not None:  # (no model: the registration check below says so)
+            report["pose_checks"] = checks
             if check_poses and checks["refuse"]:
                 raise ValueError(f"COLMAP registered {len(posed)} images of {source}, but its model is wrong: "
                                  + "; ".join(checks["refuse"]) + "; or check_poses=false to keep this model")
-            for said in checks["warn"]:
+            for said in checks["warn"] + ([] if check_poses else checks["refuse"]):
                 log.warning("%s", said)
-            if check_poses:  # the photos nothing holds in place are not posed (and count against min_registered)
-                posed -= set(checks["thinly_posed"])
-        unregistered = [name for name in names if name not in posed]
-        check_registered(len(posed), unregistered, len(names), source, chosen, min_registered, escalated="escalated" in report)
+            left_out = sorted(set(checks["thinly_posed"]) - posed)
+        unregistered = [name for name in names if name not in posed and name not in left_out]
+        check_registered(len(posed), unregistered, len(names), source, chosen, min_registered, escalated="escalated" in report,
+                         left_out=left_out)
 
         write_started = time.perf_counter()
         transforms = reconstruction_to_transforms(model, mask_folder="masks" if fractions else None, only=posed)
@@ -464,7 +494,7 @@ def process_capture(
             check_silhouettes(agreement, len(posed), source, min_mask_agreement)
         seconds["total"] = time.perf_counter() - started
         report.update({
-            "images_given": len(names), "registered": len(posed), "unregistered": unregistered, "matcher": chosen,
+            "images_given": len(names), "registered": len(posed), "unregistered": unregistered, "left_out": left_out, "matcher": chosen,
             "mapper": mapping["mapper"], "mappers": mapping["mappers"], "matches": mapping["matches"],
             "focal_priors": mapping["focal_priors"],
             "verified_matches_explained": mapping["mappers"][mapping["mapper"]]["verified_matches_explained"],
@@ -531,6 +561,8 @@ def format_report(report: dict[str, Any]) -> str:
             first = f"the masks agreed {100.0 * escalated['mask_agreement_before']:.0f}% at first"
             after = f"{escalated['registered_after']} and agreed " + (
                 f"{100.0 * escalated['mask_agreement_after']:.0f}%" if escalated["mask_agreement_after"] is not None else "not at all")
+        elif escalated.get("why") == "model":
+            first, after = "the pose checks refused the first model", f"{escalated['registered_after']}"
         else:
             first, after = f"too few registered at first ({escalated['registered_before']})", f"{escalated['registered_after']}"
         lines.insert(1, f"{first}: posed again with stronger settings ({escalated['settings']['max_size']} px, "
@@ -542,6 +574,11 @@ def format_report(report: dict[str, Any]) -> str:
     if masks:
         lines.insert(3, f"masks: {masks['count']} from {masks['folder']} ({masks['mask_object']} = object), on average "
                         f"{100.0 * masks['mean_object_fraction']:.0f}% of a photo; features matched on the object alone")
+    if report.get("left_out"):
+        lines.insert(3, f"left out, posed on fewer than {MIN_POINTS} of the model's points: {listed(report['left_out'])}")
+    repeated = (report.get("pose_checks") or {}).get("repeated")
+    if repeated:
+        lines.insert(3, "one picture twice (their matches do not move): " + "; ".join(" and ".join(pair) for pair in repeated))
     if "silhouettes" in report:
         agreement = report["silhouettes"]
         below = agreement["views_below"]

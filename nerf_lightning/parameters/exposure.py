@@ -37,7 +37,8 @@ class ViewExposure(CentredViewTable):
     Args:
         lr: the rows' learning rate (their own optimiser group). A photo's row moves only on the steps that draw it
             (a view a step: one in V), so it is larger than a colour's.
-        penalty: weight of the centred rows' mean squared norm in the loss (``train/loss_appearance``); 0 for none.
+        penalty: weight of the centred rows' mean squared norm in the loss (logged as ``train/loss_appearance`` by
+            splats, ``train/loss_exposure_appearance`` by a radiance field); 0 for none.
     """
 
     def __init__(self, lr: float = 1e-2, penalty: float = 1e-3) -> None:

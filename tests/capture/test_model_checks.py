@@ -29,11 +29,13 @@ def test_photos_posed_on_almost_no_points_are_named_to_be_left_out():
     assert flags["refuse"] == []
     [said] = flags["warn"]
     assert said.startswith(f"2 of the 15 posed photos see fewer than {MIN_POINTS} of the model's points") and said.endswith("IMG_2.JPG, IMG_7.JPG")
+    assert "(left out unless check_poses=false)" in said
 
 
 def test_one_repeated_photo_is_named_and_a_room_that_stood_still_is_refused():
     flags = pose_flags(checks(repeated=[["a.jpg", "a_again.jpg"]]), registered=26)
     assert flags == {"refuse": [], "warn": ["one picture twice (their matches do not move): a.jpg and a_again.jpg"]}
+    assert pose_flags(checks(repeated=[["a.jpg", "a_again.jpg"]]), registered=6)["refuse"] == []  # a small capture's repeat too
     still = [[f"turn_{k:03d}.png", f"turn_{k + 1:03d}.png"] for k in range(0, 12, 2)]  # 12 of 36 photos in static pairs
     [refused] = pose_flags(checks(repeated=still), registered=36)["refuse"]
     assert refused.startswith("12 of the 36 posed photos match another one without moving") and "give the masks (masks=)" in refused

@@ -405,8 +405,8 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
         return
     # the photos are 161 px across: features at their own size or max_size, whichever is more; as many features (guided matching costs their square)
     assert calls[1]["strong"] and calls[1]["max_size"] == 1600 and calls[1]["max_features"] == 8192
-    # on the pairs that can overlap, the first pass's verified ones among them, not on every pair
-    assert calls[0]["matcher"] == "exhaustive" and calls[1]["matcher"] == "overlapping"
+    # six photos: every pair again (a photo the first pass left out has no verified pair to follow)
+    assert calls[0]["matcher"] == "exhaustive" and calls[1]["matcher"] == "exhaustive" == report["escalated"]["matcher"]
     assert calls[1]["verified_in"] == calls[1]["verified_in"].parent.parent / "colmap" / "database.db"
     assert report["escalated"]["matches_before"] == MATCHES
     assert report["registered"] == 6 and report["escalated"]["registered_before"] == 3 and report["escalated"]["registered_after"] == 6
@@ -414,6 +414,50 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
     assert "too few registered at first (3): posed again with stronger settings" in format_report(report)
     # why the first pass registered few, in the warning: the features a photo and the matches a pair
     assert "812 features a photo on average, 40 in the fewest; 4 of 15 pairs matched verified a geometry, 31 matches a verified pair" in caplog.text
+
+
+@needs_pycolmap
+@pytest.mark.parametrize("check_poses", [True, False])
+def test_photos_posed_on_almost_no_points_are_left_out_named_and_counted_against_the_floor(tmp_path, monkeypatch, caplog, check_poses):
+    import nerf_lightning.capture.process as process
+    from nerf_lightning.capture import format_report, process_capture
+
+    photos = object_photos(tmp_path / "photos", count=6)
+    masks = save_masks(tmp_path / "masks", photos)
+
+    def reconstruct(images, names, colmap_dir, *, masks=None, **options):
+        colmap_dir.mkdir(parents=True, exist_ok=True)
+        mapping = {"mapper": "global", "mappers": {"global": {"registered": len(names), "verified_matches_explained": 1.0}},
+                   "matches": MATCHES, "focal_priors": [], "other_model": None}
+        return synthetic_model(list(names), SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
+
+    thin = ["photo_1.png", "photo_4.png"]
+    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "pose_checks", lambda *_: {**NOTHING_FOUND, "thinly_posed": thin, "warn": ["2 of the 6 posed photos ..."]})
+    monkeypatch.setattr(process, "silhouette_agreement",
+                        lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
+    report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.0, escalate=False, progress=False,
+                             check_poses=check_poses)
+    frames = [frame["file_path"] for frame in json.loads((tmp_path / "out" / "transforms.json").read_text())["frames"]]
+    if not check_poses:  # kept, as before the checks
+        assert report["registered"] == 6 and report["left_out"] == [] and len(frames) == 6
+        return
+    assert report["registered"] == 4 and report["left_out"] == thin and report["unregistered"] == []
+    assert frames == [f"images/photo_{k}.png" for k in (0, 2, 3, 5)]
+    assert "left out, posed on fewer than 6 of the model's points: photo_1.png, photo_4.png" in format_report(report)
+    assert "2 of the 6 posed photos" in caplog.text
+    # four of six under a floor of 0.9: refused, the two named as not posed, not as unregistered
+    with pytest.raises(ValueError, match=r"COLMAP posed \(registered, less 2 seeing fewer than 6 of its points\) 4 of the 6 images .* "
+                                         r"these are not posed: photo_1.png, photo_4.png"):
+        process_capture(photos, tmp_path / "out2", masks=masks, min_mask_agreement=0.0, escalate=False, progress=False,
+                        min_registered=0.9)
+
+
+def test_the_stronger_pass_matches_every_pair_of_few_photos_and_the_pairs_that_can_overlap_of_many():
+    from nerf_lightning.capture.process import stronger_matcher
+
+    assert stronger_matcher(6) == stronger_matcher(25) == "exhaustive"  # 300 pairs
+    assert stronger_matcher(26) == stronger_matcher(66) == "overlapping"  # 325 and 2,145 pairs
 
 
 def test_the_model_kept_is_the_one_with_more_photos_posed_weighted_by_the_masks_agreement():

@@ -149,8 +149,8 @@ def camera_spread(reconstruction: Any) -> float:
 
 
 def pose_flags(checks: dict[str, Any], registered: int) -> dict[str, list[str]]:
-    """What :func:`pose_checks` found, as sentences: ``refuse`` (the model is of something else than the capture's
-    subject) and ``warn`` (photos left out, a photo twice)."""
+    """What :func:`pose_checks` found, as sentences: ``refuse`` (the model is wrong; each says what was found, then
+    after a semicolon why it matters and what to do) and ``warn`` (photos left out, a photo twice)."""
     refuse, warn = [], []
     thin = checks["thinly_posed"]
     if thin:
@@ -158,15 +158,15 @@ def pose_flags(checks: dict[str, Any], registered: int) -> dict[str, list[str]]:
                     f"them in place (left out unless check_poses=false): {', '.join(thin[:6])}{', ...' if len(thin) > 6 else ''}")
     spread = checks.get("camera_spread")
     if spread is not None and spread > MAX_SPREAD:
-        refuse.append(f"the posed cameras lie {spread:.0f} times farther apart than they are from what they see (a right model's "
-                      f"cameras, walked round an object, about 1; under {MAX_SPREAD:g} is taken as right), so the photos are strung "
+        refuse.append(f"the posed cameras lie {spread:.0f} times farther apart than they are from what they see; a right model's "
+                      f"cameras, walked round an object, about 1 (under {MAX_SPREAD:g} is taken as right), so the photos are strung "
                       "together in the wrong places: the photos are likely too far apart; take one every 5 to 10 degrees round the "
                       "object, each overlapping its neighbours by two thirds")
     repeated = checks["repeated"]
     in_repeats = {name for pair in repeated for name in pair}
     if registered and len(in_repeats) >= max(3, MOSTLY_REPEATED * registered):  # more than one pair: one is a repeat
-        refuse.append(f"{len(in_repeats)} of the {registered} posed photos match another one without moving (the camera did not move "
-                      "against what it matched: a turntable photographed without masks, whose room stands still), so the model "
+        refuse.append(f"{len(in_repeats)} of the {registered} posed photos match another one without moving; the camera did not move "
+                      "against what it matched (a turntable photographed without masks, whose room stands still), so the model "
                       "is of the room, not the object: give the masks (masks=)")
     elif repeated:
         warn.append("one picture twice (their matches do not move): " + "; ".join(" and ".join(pair) for pair in repeated))

@@ -436,7 +436,7 @@ def process_capture(
         if escalate and (too_few or disagree):
             stronger = escalated_settings(int(max_size), int(max_features), sizes)
             again_matcher = stronger_matcher(len(names))
-            why = (f"COLMAP's model is wrong ({checks['refuse'][0].split(',')[0]})" if refused else
+            why = (f"COLMAP's model is wrong: {checks['refuse'][0].split(';')[0]}" if refused else
                    f"COLMAP posed {len(posed)} of the {len(names)} images" if too_few else
                    f"the masks agree with the poses in {100.0 * agreement['median_coverage']:.0f}% of the median photo's rays")
             log.warning("%s (%s); posing them again with stronger settings: features at %d px, %d of them, affine shapes and "

@@ -38,7 +38,7 @@ def test_one_repeated_photo_is_named_and_a_room_that_stood_still_is_refused():
     assert pose_flags(checks(repeated=[["a.jpg", "a_again.jpg"]]), registered=6)["refuse"] == []  # a small capture's repeat too
     still = [[f"turn_{k:03d}.png", f"turn_{k + 1:03d}.png"] for k in range(0, 12, 2)]  # 12 of 36 photos in static pairs
     [refused] = pose_flags(checks(repeated=still), registered=36)["refuse"]
-    assert refused.startswith("12 of the 36 posed photos match another one without moving") and "give the masks (masks=)" in refused
+    assert refused.startswith("12 of the 36 posed photos match another one without moving; ") and "give the masks (masks=)" in refused
 
 
 def turned_about_y(angle: float) -> torch.Tensor:
@@ -85,7 +85,7 @@ def test_cameras_spread_far_wider_than_they_see_refuse_the_model():
 
     assert pose_flags({**checks(), "camera_spread": 1.03}, registered=27)["refuse"] == []
     [refused] = pose_flags({**checks(), "camera_spread": 11.2}, registered=40)["refuse"]
-    assert refused.startswith("the posed cameras lie 11 times farther apart than they are from what they see")
+    assert refused.startswith("the posed cameras lie 11 times farther apart than they are from what they see; ")
     assert f"under {MAX_SPREAD:g} is taken as right" in refused
 
 

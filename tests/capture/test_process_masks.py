@@ -453,6 +453,41 @@ def test_photos_posed_on_almost_no_points_are_left_out_named_and_counted_against
                         min_registered=0.9)
 
 
+@needs_pycolmap
+@pytest.mark.parametrize("second_refused", [False, True])
+def test_a_model_the_pose_checks_refuse_is_posed_again_and_never_kept_over_one_they_pass(tmp_path, monkeypatch, caplog, second_refused):
+    import nerf_lightning.capture.process as process
+    from nerf_lightning.capture import process_capture
+
+    photos = object_photos(tmp_path / "photos", count=6)
+    masks = save_masks(tmp_path / "masks", photos)
+    calls = []
+
+    def reconstruct(images, names, colmap_dir, *, masks=None, **options):  # every photo registers both times
+        calls.append(options)
+        colmap_dir.mkdir(parents=True, exist_ok=True)
+        mapping = {"mapper": "global", "mappers": {"global": {"registered": len(names), "verified_matches_explained": 1.0}},
+                   "matches": MATCHES, "focal_priors": [], "other_model": None}
+        return synthetic_model(list(names), SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
+
+    wrong = {**NOTHING_FOUND, "camera_spread": 48.0, "refuse": ["the posed cameras lie 48 times farther apart than they are from what "
+                                                                "they see; so the photos are strung together in the wrong places"]}
+    found = [wrong, wrong if second_refused else dict(NOTHING_FOUND)]
+    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "pose_checks", lambda *_: found.pop(0))
+    monkeypatch.setattr(process, "silhouette_agreement",
+                        lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
+    if second_refused:
+        with pytest.raises(ValueError, match="COLMAP registered 6 images of .*, but its model is wrong: the posed cameras lie 48 times"):
+            process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.0, progress=False)
+        assert len(calls) == 2 and not (tmp_path / "out" / "transforms.json").exists()
+        return
+    report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.0, progress=False)
+    assert len(calls) == 2 and calls[1]["strong"] and report["escalated"]["why"] == "model" and report["escalated"]["kept"] == "stronger"
+    assert "COLMAP's model is wrong: the posed cameras lie 48 times farther apart than they are from what they see (" in caplog.text
+    assert report["pose_checks"]["refuse"] == [] and report["registered"] == 6
+
+
 def test_the_stronger_pass_matches_every_pair_of_few_photos_and_the_pairs_that_can_overlap_of_many():
     from nerf_lightning.capture.process import stronger_matcher
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import logging
 import pickle
+import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -105,9 +106,22 @@ def _load_restricted(path: Path, map_location: str | torch.device) -> dict[str, 
             raise UntrustedCheckpointError(f"{path} holds something nerf-lightning checkpoints never hold ({reason}); {TRUST_HINT}") from None
 
 
+def what_file_is(path: Path) -> str:
+    """A few words on what a file that is not a checkpoint holds: empty, text (with its first line) or other bytes."""
+    head = path.read_bytes()[:200]
+    if not head:
+        return "empty"
+    try:
+        first = head.decode("utf-8").strip().splitlines()
+    except UnicodeDecodeError:
+        return f"{path.stat().st_size} bytes of something else"
+    return f"text ({first[0][:60]!r} ...)" if first else "blank text"
+
+
 def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "cpu", trust: bool = False) -> dict[str, Any]:
     """A nerf-train checkpoint, checked: FileNotFoundError for a missing file; ValueError for a file that is not a
-    nerf-train checkpoint, or one whose layout this version cannot load (naming the version that wrote it).
+    checkpoint at all (text, an image: said as such, not as torch's loader's complaint), one that is not a nerf-train
+    checkpoint, or one whose layout this version cannot load (naming the version that wrote it).
 
     Unpickling can run any code a file names, so unless ``trust`` the file is read with torch's weights_only and
     :func:`allowed_globals`: a file that needs anything more is refused (ValueError naming what it needs) before any of
@@ -116,6 +130,9 @@ def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "c
     path = Path(ckpt_path).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
+    if not zipfile.is_zipfile(path):  # torch.save's archive, as every checkpoint nerf-train writes is
+        raise ValueError(f"{path} is not a checkpoint: nerf-train writes its checkpoints as torch.save archives "
+                         f"(<run>/checkpoints/last.ckpt, <run>/marks/minute_<m>.ckpt), and this file is {what_file_is(path)}")
     try:
         if trust:
             checkpoint = torch.load(path, map_location=map_location, weights_only=False, mmap=True)

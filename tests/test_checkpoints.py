@@ -21,9 +21,17 @@ def test_a_file_that_is_not_a_nerf_train_checkpoint_is_refused(tmp_path):
     torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
     with pytest.raises(ValueError, match="other.ckpt is not a nerf-train checkpoint"):
         load_model(tmp_path / "other.ckpt")
-    (tmp_path / "text.ckpt").write_text("hello")
-    with pytest.raises(ValueError, match="could not read checkpoint .*text.ckpt"):
+    # a file that is no checkpoint at all is said to be one, with what it holds, not as torch's loader complains
+    (tmp_path / "text.ckpt").write_text("hello\nworld")
+    with pytest.raises(ValueError, match=r"text.ckpt is not a checkpoint: nerf-train writes its checkpoints as torch.save archives .* "
+                                         r"and this file is text \('hello' ...\)"):
         load_model(tmp_path / "text.ckpt")
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    with pytest.raises(ValueError, match="empty.ckpt is not a checkpoint: .* this file is empty"):
+        load_model(tmp_path / "empty.ckpt")
+    (tmp_path / "image.ckpt").write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")
+    with pytest.raises(ValueError, match="image.ckpt is not a checkpoint: .* this file is 10 bytes of something else"):
+        load_model(tmp_path / "image.ckpt")
 
 
 def test_run_dir_of():

@@ -226,7 +226,7 @@ def check_registered(registered: int, unregistered: list[str], given: int, sourc
     fewer than ``min_registered`` of them (``escalated``: also with the stronger settings, which the line says;
     ``left_out``: photos it registered on too few points to hold them, named apart)."""
     change = ("try matcher=exhaustive, " if matcher == "sequential" else "") + ADVICE
-    posed = "registered" if not left_out else f"posed (registered, less {len(left_out)} seeing fewer than {MIN_POINTS} of its points)"
+    counted = "registered" if not left_out else f"posed (registered, less {len(left_out)} seeing fewer than {MIN_POINTS} of its points)"
     missing = "these did not register" if not left_out else "these are not posed"
     if escalated:
         change = "stronger settings (features at twice the size, affine shapes, guided matching) did not help either; " + change
@@ -235,10 +235,10 @@ def check_registered(registered: int, unregistered: list[str], given: int, sourc
                          f"to start a model; {change}")
     unregistered = [*unregistered, *left_out]
     if registered < 3:
-        raise ValueError(f"COLMAP {posed} only {registered} of the {given} images of {source}, 3 are needed; "
+        raise ValueError(f"COLMAP {counted} only {registered} of the {given} images of {source}, 3 are needed; "
                          f"{missing}: {listed(unregistered)}; {change}")
     if registered < min_registered * given:
-        raise ValueError(f"COLMAP {posed} {registered} of the {given} images of {source} ({100.0 * registered / given:.0f}%, "
+        raise ValueError(f"COLMAP {counted} {registered} of the {given} images of {source} ({100.0 * registered / given:.0f}%, "
                          f"under min_registered={min_registered:g}); {missing}: {listed(unregistered)}; "
                          f"{change}; or min_registered=0 to keep the {registered} that did")
 

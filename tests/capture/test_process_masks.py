@@ -375,6 +375,25 @@ NOTHING_FOUND = {"thinly_posed": [], "points_seen": {}, "repeated": [], "camera_
 MATCHES = {"keypoints_mean": 812.0, "keypoints_min": 40, "pairs_matched": 15, "pairs_verified": 4, "inliers_per_verified_pair": 31.0}
 
 
+def stand_in_reconstruct(calls: list, posed=None, mapper: str = "global"):
+    """COLMAP's part stood in for: each call's options appended to ``calls``, a synthetic model of the photos
+    ``posed(names, options)`` picks (all of them by default), registered by ``mapper``."""
+    def reconstruct(images, names, colmap_dir, *, masks=None, **options):
+        calls.append(options)
+        colmap_dir.mkdir(parents=True, exist_ok=True)
+        chosen = list(names) if posed is None else posed(names, options)
+        mapping = {"mapper": mapper, "mappers": {mapper: {"registered": len(chosen), "verified_matches_explained": 1.0}},
+                   "matches": MATCHES, "focal_priors": [], "other_model": None}
+        return synthetic_model(chosen, SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
+
+    return reconstruct
+
+
+def masks_agree(*_, **__):
+    """The masks' check stood in for: the stand-in models' poses are not the photos', so their masks are taken to agree."""
+    return {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"}
+
+
 @needs_pycolmap
 @pytest.mark.parametrize("escalate", [True, False])
 def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_and_says_so(tmp_path, monkeypatch, escalate, caplog):
@@ -385,19 +404,11 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
     masks = save_masks(tmp_path / "masks", photos)
     calls = []
 
-    def reconstruct(images, names, colmap_dir, *, masks=None, **options):  # COLMAP stood in for: 3 of 6, then 6 of 6
-        calls.append(options)
-        colmap_dir.mkdir(parents=True, exist_ok=True)
-        posed = list(names) if options.get("strong") else list(names)[:3]
-        mapping = {"mapper": "incremental", "mappers": {"incremental": {"registered": len(posed), "verified_matches_explained": 1.0}},
-                   "matches": MATCHES, "focal_priors": [], "other_model": None}
-        return synthetic_model(posed, SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
-
-    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    # 3 of 6 registered, then (stronger) 6 of 6
+    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct(calls, lambda names, options: list(names) if options.get("strong")
+                                                                     else list(names)[:3], mapper="incremental"))
     monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
-    # the stand-in models' poses are not the photos': their masks are taken to agree, so that the count alone decides
-    monkeypatch.setattr(process, "silhouette_agreement",
-                        lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
+    monkeypatch.setattr(process, "silhouette_agreement", masks_agree)  # so that the count alone decides
     report = process_capture(photos, tmp_path / "out", masks=masks, max_size=1600, max_features=8192, min_registered=0.4, min_mask_agreement=0.0,
                              escalate=escalate, progress=False)
     if not escalate:
@@ -425,17 +436,10 @@ def test_photos_posed_on_almost_no_points_are_left_out_named_and_counted_against
     photos = object_photos(tmp_path / "photos", count=6)
     masks = save_masks(tmp_path / "masks", photos)
 
-    def reconstruct(images, names, colmap_dir, *, masks=None, **options):
-        colmap_dir.mkdir(parents=True, exist_ok=True)
-        mapping = {"mapper": "global", "mappers": {"global": {"registered": len(names), "verified_matches_explained": 1.0}},
-                   "matches": MATCHES, "focal_priors": [], "other_model": None}
-        return synthetic_model(list(names), SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
-
     thin = ["photo_1.png", "photo_4.png"]
-    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct([]))
     monkeypatch.setattr(process, "pose_checks", lambda *_: {**NOTHING_FOUND, "thinly_posed": thin, "warn": ["2 of the 6 posed photos ..."]})
-    monkeypatch.setattr(process, "silhouette_agreement",
-                        lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
+    monkeypatch.setattr(process, "silhouette_agreement", masks_agree)
     report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.0, escalate=False, progress=False,
                              check_poses=check_poses)
     frames = [frame["file_path"] for frame in json.loads((tmp_path / "out" / "transforms.json").read_text())["frames"]]
@@ -463,20 +467,12 @@ def test_a_model_the_pose_checks_refuse_is_posed_again_and_never_kept_over_one_t
     masks = save_masks(tmp_path / "masks", photos)
     calls = []
 
-    def reconstruct(images, names, colmap_dir, *, masks=None, **options):  # every photo registers both times
-        calls.append(options)
-        colmap_dir.mkdir(parents=True, exist_ok=True)
-        mapping = {"mapper": "global", "mappers": {"global": {"registered": len(names), "verified_matches_explained": 1.0}},
-                   "matches": MATCHES, "focal_priors": [], "other_model": None}
-        return synthetic_model(list(names), SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
-
     wrong = {**NOTHING_FOUND, "camera_spread": 48.0, "refuse": ["the posed cameras lie 48 times farther apart than they are from what "
                                                                 "they see; so the photos are strung together in the wrong places"]}
     found = [wrong, wrong if second_refused else dict(NOTHING_FOUND)]
-    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct(calls))  # every photo registers both times
     monkeypatch.setattr(process, "pose_checks", lambda *_: found.pop(0))
-    monkeypatch.setattr(process, "silhouette_agreement",
-                        lambda *_, **__: {"median_coverage": 0.95, "views_below": [], "coverage": {}, "masks_read": "masks"})
+    monkeypatch.setattr(process, "silhouette_agreement", masks_agree)
     if second_refused:
         with pytest.raises(ValueError, match="COLMAP registered 6 images of .*, but its model is wrong: the posed cameras lie 48 times"):
             process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.0, progress=False)
@@ -525,17 +521,10 @@ def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_k
     masks = save_masks(tmp_path / "masks", photos)
     calls, left = [], list(agreements)
 
-    def reconstruct(images, names, colmap_dir, *, masks=None, **options):
-        calls.append(options)
-        colmap_dir.mkdir(parents=True, exist_ok=True)
-        mapping = {"mapper": "global", "mappers": {"global": {"registered": len(names), "verified_matches_explained": 1.0}},
-                   "matches": MATCHES, "focal_priors": [], "other_model": None}
-        return synthetic_model(list(names), SIZE), {"features": 1.0, "matching": 1.0, "mapping": 1.0}, mapping
-
     def silhouette_agreement(transforms, points, staging, downscales, seed=0):
         return {"median_coverage": left.pop(0), "views_below": [], "coverage": {}, "masks_read": "masks"}
 
-    monkeypatch.setattr(process, "reconstruct", reconstruct)
+    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct(calls))
     monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
     monkeypatch.setattr(process, "silhouette_agreement", silhouette_agreement)
     report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.4, progress=False)

@@ -124,10 +124,15 @@ def repeated_photos(database: Path, reconstruction: Any) -> list[list[str]]:
     return sorted(repeated)
 
 
-def thinly_posed(reconstruction: Any) -> list[str]:
-    """The registered photos that see fewer than :data:`MIN_POINTS` of the model's 3D points, by name."""
-    return sorted(reconstruction.image(image_id).name for image_id in reconstruction.reg_image_ids()
-                  if reconstruction.image(image_id).num_points3D < MIN_POINTS)
+def points_seen(reconstruction: Any) -> dict[str, int]:
+    """Each registered photo, by name, -> how many of the model's 3D points it sees."""
+    return dict(sorted((reconstruction.image(image_id).name, int(reconstruction.image(image_id).num_points3D))
+                       for image_id in reconstruction.reg_image_ids()))
+
+
+def thinly_posed(seen: dict[str, int]) -> list[str]:
+    """The photos of :func:`points_seen` that see fewer than :data:`MIN_POINTS` of the model's 3D points."""
+    return sorted(name for name, count in seen.items() if count < MIN_POINTS)
 
 
 def camera_spread(reconstruction: Any) -> float:
@@ -174,13 +179,13 @@ def pose_flags(checks: dict[str, Any], registered: int) -> dict[str, list[str]]:
 
 
 def pose_checks(database: Path, kept: Any, other: Any | None) -> dict[str, Any]:
-    """The checks of the kept model (``other``: the other mapper's model, or None): ``thinly_posed`` (and
-    ``points_seen``, each posed photo's count of the model's points), ``repeated``, ``view_graph``, ``mappers`` (:func:`mappers_agreement`; None with one model) and what they
-    make of it (``refuse`` and ``warn``, :func:`pose_flags`)."""
-    spread = camera_spread(kept)
-    seen = {kept.image(image_id).name: int(kept.image(image_id).num_points3D) for image_id in kept.reg_image_ids()}
-    checks: dict[str, Any] = {"thinly_posed": thinly_posed(kept), "points_seen": dict(sorted(seen.items())),
-                              "repeated": repeated_photos(database, kept), "camera_spread": round(spread, 4) if math.isfinite(spread) else None,
+    """The checks of the kept model (``other``: the other mapper's model, or None): ``points_seen`` and
+    ``thinly_posed``, ``repeated``, ``camera_spread`` (None where no photo sees a point), ``view_graph``, ``mappers``
+    (:func:`mappers_agreement`; None with one model) and what they make of it (``refuse`` and ``warn``,
+    :func:`pose_flags`)."""
+    spread, seen = camera_spread(kept), points_seen(kept)
+    checks: dict[str, Any] = {"thinly_posed": thinly_posed(seen), "points_seen": seen, "repeated": repeated_photos(database, kept),
+                              "camera_spread": round(spread, 4) if math.isfinite(spread) else None,
                               "view_graph": view_graph(database, kept),
                               "mappers": mappers_agreement(kept, other) if other is not None else None}
     checks.update(pose_flags(checks, kept.num_reg_images()))

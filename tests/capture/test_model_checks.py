@@ -137,7 +137,7 @@ class Model:
 
 
 def test_the_camera_spread_is_about_one_round_an_object_and_near_zero_for_a_camera_that_did_not_move():
-    from nerf_lightning.capture.model_checks import camera_spread, thinly_posed
+    from nerf_lightning.capture.model_checks import camera_spread, points_seen, thinly_posed
 
     points = np.random.default_rng(0).normal(scale=0.1, size=(50, 3))  # a small object at the origin
     ring = [3.0 * np.array([math.cos(a), 0.0, math.sin(a)]) for a in np.linspace(0, 2 * math.pi, 12, endpoint=False)]
@@ -152,4 +152,4 @@ def test_the_camera_spread_is_about_one_round_an_object_and_near_zero_for_a_came
         photo.points2D = [Seen(point) for point in range(50 * k, 50 * k + 50)]
     assert camera_spread(wide) > 4.0
     few = Model(ring[:3], points[:5])  # each photo sees 5 points: under the floor
-    assert thinly_posed(few) == sorted(photo.name for photo in few.photos.values())
+    assert thinly_posed(points_seen(few)) == sorted(photo.name for photo in few.photos.values())

@@ -226,7 +226,7 @@ def run_suite(suite: Suite, rows: list[Row], data_dir: Path, results_dir: Path, 
 # came out as before (the same checkpoint and views give the same PSNR unless the scoring changed).
 
 # what a row takes from a new eval.json's means (its last curve point too)
-SCORES = ("psnr", "ssim", "lpips", "psnr_masked", "depth_error", "cc_psnr", "cc_ssim", "cc_lpips", "cc_psnr_masked")
+SCORES = ("psnr", "ssim", "lpips", "psnr_masked", "depth_error", *COLOUR_CORRECTED)
 
 
 def scored_checkpoint(row: dict[str, Any]) -> tuple[Path, list[str]] | None:

@@ -18,7 +18,6 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
 
 from nerf_lightning import __version__
-from nerf_lightning.config import run_dir_of  # noqa: F401 (its home was here; imported from here by earlier code)
 from nerf_lightning.devices import enable_tf32, resolve_device
 from nerf_lightning.io import write_atomic
 
@@ -181,7 +180,7 @@ def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust:
     if device_for is not None:
         target = device_for(target, asked=str(device).strip().lower() not in ("auto", "none"))
     model.to(target)
-    return model, {"kind": info["kind"], "config": config, "global_step": checkpoint.get("global_step")}
+    return model, {"config": config, "global_step": checkpoint.get("global_step")}
 
 
 def load_run_data(config: dict[str, Any], model: Any = None):

@@ -154,7 +154,7 @@ run_syncs() {
     timeout -k 10 $((TEST_SECONDS + 20)) $PY -m nerf_lightning.cli.train experiment=fast_blender_gpu \
         data.root="$DATA/nerf_synthetic/lego" model.compile=false trainer.max_steps=$SYNC_STEPS data.val_every=null \
         "${SYNC_OVERRIDES[@]}" paths.output_dir="$WORK/syncs_run" \
-        "+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: $OUT/syncs.json}" \
+        "+callbacks.syncs={_target_: nerf_lightning.training.syncs.CountHostSyncs, path: $OUT/syncs.json}" \
         "+callbacks.sync_stop={_target_: nerf_lightning.bench.callbacks.StopAtTrainingMinutes, minutes: $(awk "BEGIN{m = ($TEST_SECONDS - 25) / 60; print (m > 0.2) ? m : 0.2}")}" \
         >"$WORK/syncs.log" 2>&1
     echo "nerf-train (syncs) exit $?" >>"$WORK/syncs.log"

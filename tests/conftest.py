@@ -61,7 +61,7 @@ CURVE_COLOURS = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40))
 
 
 def assert_curves_drawn(path: Path, curves: int = 1) -> None:
-    """A PSNR plot (:func:`nerf_lightning.plots.plot_psnr_curves`) that draws ``curves`` curves: a PNG of a figure's
+    """A PSNR plot (:func:`nerf_lightning.outputs.plots.plot_psnr_curves`) that draws ``curves`` curves: a PNG of a figure's
     size, with each of the first ``curves`` line colours on enough pixels to be a line, and no more curves than that."""
     import imageio.v3 as iio
     import numpy as np

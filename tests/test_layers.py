@@ -7,21 +7,23 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "nerf_lightning"
 
 # bottom to top; a module may import its own layer's and lower ones'. The name is the first part below the package
 # (a subpackage or a root module); "" is the package's own __init__.
 LAYERS = [
     {"", "errors", "io", "compiling", "devices", "metrics", "config", "parameters", "conf", "lazy"},
-    {"plots", "video", "syncs", "geometry", "checkpoints"},
+    {"geometry", "checkpoints"},
     {"data", "fields"},
     {"rendering", "splats", "capture"},
     {"models"},
     {"training", "outputs"},
     {"viz"},
-    {"sweeps", "bench"},
-    # the commands; and callbacks.py, which only points old names at their new homes (loaded when asked for)
-    {"cli", "callbacks"},
+    {"bench"},
+    # the commands
+    {"cli"},
 ]
 
 
@@ -34,9 +36,10 @@ def modules() -> dict[str, Path]:
     return {module_name(path): path for path in PACKAGE.rglob("*.py")}
 
 
-def imported(name: str, path: Path, known: dict[str, Path]) -> set[str]:
+def imported(name: str, path: Path, known: dict[str, Path], type_checking: bool = False) -> set[str]:
     """The package's modules that importing ``name`` runs: every module its import statements name (inside functions
-    too, not under ``if TYPE_CHECKING:``), and the ``__init__`` of every package above them."""
+    too; under ``if TYPE_CHECKING:`` only with ``type_checking``, for what a type checker reads), and the ``__init__``
+    of every package above them."""
 
     def resolve(dotted: str) -> str | None:
         while dotted and dotted not in known:
@@ -45,7 +48,7 @@ def imported(name: str, path: Path, known: dict[str, Path]) -> set[str]:
 
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     tree = ast.parse(path.read_text())
-    skipped = {id(node) for block in ast.walk(tree) if isinstance(block, ast.If) and "TYPE_CHECKING" in ast.unparse(block.test)
+    skipped = set() if type_checking else {id(node) for block in ast.walk(tree) if isinstance(block, ast.If) and "TYPE_CHECKING" in ast.unparse(block.test)
                for statement in block.body for node in ast.walk(statement)}
     found = set()
     for node in ast.walk(tree):
@@ -77,19 +80,22 @@ def layer_of(module: str) -> int:
     raise AssertionError(f"{module}: its part {part!r} has no layer in tests/test_layers.py's LAYERS: give it one")
 
 
-def graph() -> dict[str, set[str]]:
+def graph(type_checking: bool = False) -> dict[str, set[str]]:
     known = modules()
-    return {name: imported(name, path, known) for name, path in known.items()}
+    return {name: imported(name, path, known, type_checking) for name, path in known.items()}
 
 
-def test_no_module_imports_a_higher_layer():
+@pytest.mark.parametrize("type_checking", [False, True], ids=["run", "type-checked"])
+def test_no_module_imports_a_higher_layer(type_checking):
     upward = [f"{module} (layer {layer_of(module)}) imports {target} (layer {layer_of(target)})"
-              for module, targets in graph().items() for target in sorted(targets) if layer_of(target) > layer_of(module)]
+              for module, targets in graph(type_checking).items() for target in sorted(targets) if layer_of(target) > layer_of(module)]
     assert not upward, "\n".join(upward)
 
 
-def test_no_import_cycle():
-    edges = graph()
+@pytest.mark.parametrize("type_checking", [False, True], ids=["run", "type-checked"])
+def test_no_import_cycle(type_checking):
+    """Neither at run time nor as a type checker reads the imports (those under ``if TYPE_CHECKING:`` too)."""
+    edges = graph(type_checking)
     cycles, state = [], {}
 
     def visit(module: str, trail: list[str]) -> None:

@@ -5,7 +5,7 @@ import warnings
 
 import torch
 
-from nerf_lightning.syncs import HOST_DATA, HostSyncs
+from nerf_lightning.training.syncs import HOST_DATA, HostSyncs
 
 
 def test_each_kind_of_wait_is_counted_by_name():
@@ -52,7 +52,7 @@ def test_on_cuda_the_callback_also_counts_what_cuda_reports_as_synchronizing(mon
     # op does; here a stand-in for CUDA warns as it would, since this machine has none
     from types import SimpleNamespace
 
-    from nerf_lightning.syncs import CountHostSyncs
+    from nerf_lightning.training.syncs import CountHostSyncs
 
     modes = []
     monkeypatch.setattr(torch.cuda, "set_sync_debug_mode", modes.append)

@@ -185,7 +185,7 @@ def unmeasured(rows: list[dict[str, Any]]) -> list[str]:
 def write_report(results_dir: Path, report: Path, readme: Path | None = None) -> Path:
     """Write the results table ``report`` and its plots (``<results_dir>/<scene>.png``) from the results JSONs, and
     the summary table of ``readme`` where it has one (:func:`write_readme_table`)."""
-    from nerf_lightning.plots import plot_psnr_curves
+    from nerf_lightning.outputs.plots import plot_psnr_curves
 
     results_dir, report = Path(results_dir), Path(report)
     rows = read_all(results_dir)

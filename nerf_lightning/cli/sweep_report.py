@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from nerf_lightning.sweeps import report
+from nerf_lightning.outputs.sweeps import report
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -17,15 +17,34 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 
 from nerf_lightning.compiling import CompiledOrEager
 from nerf_lightning.fields.hash_grid_reference import cells_of, encode_reference
 
-if TYPE_CHECKING:
-    from nerf_lightning.fields.hash_grid import HashGridEncoding
+
+
+class HashGridEncoding(Protocol):
+    """What the fast paths read of :class:`~nerf_lightning.fields.hash_grid.HashGridEncoding` (named here, so that
+    the fast paths import nothing of the module that chooses them)."""
+
+    resolutions: torch.Tensor  # (L,) each level's cells a side
+    offsets: torch.Tensor  # (L,) each level's first row in the table
+    corner_steps: torch.Tensor  # (2, 1, 1): a cell's lower and upper corner
+    primes: tuple[int, ...]  # the spatial hash's three primes, modulo the table size
+    index_dtype: torch.dtype
+    n_levels: int
+    n_dense: int  # the coarse levels stored densely, unhashed
+    dense_rows: int  # their rows
+    table_size: int
+    features_per_level: int
+    out_dim: int
+
+    def read_table(self) -> torch.Tensor: ...
+
+    def reference_inputs(self) -> tuple[torch.Tensor, ...]: ...
 
 COMPILED, COMPLEX_SUM, COMPLEX_GATHER, GATHER = "compiled", "complex_sum", "complex_gather", "gather"
 PATHS = (COMPILED, COMPLEX_SUM, COMPLEX_GATHER, GATHER)

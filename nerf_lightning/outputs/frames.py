@@ -19,7 +19,7 @@ from nerf_lightning.data.scene import Views
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.io import to_uint8, write_atomic, write_json
 from nerf_lightning.models.contract import RendersCamera
-from nerf_lightning.video import write_gif, write_mp4
+from nerf_lightning.outputs.video import write_gif, write_mp4
 
 log = logging.getLogger(__name__)
 

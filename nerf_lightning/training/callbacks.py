@@ -20,8 +20,8 @@ from tqdm import tqdm
 from nerf_lightning import __version__
 from nerf_lightning.checkpoints import CHECKPOINT_FORMAT
 from nerf_lightning.io import write_json, write_png
-from nerf_lightning.plots import plot_psnr_curves
-from nerf_lightning.video import write_gif
+from nerf_lightning.outputs.plots import plot_psnr_curves
+from nerf_lightning.outputs.video import write_gif
 
 __all__ = ["RunConfigInCheckpoint", "Snapshots", "StepOrTimeCheckpoint", "StepProgressBar", "TimedCallback", "TrainingClock",
            "history_psnr"]

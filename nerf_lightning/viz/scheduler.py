@@ -140,10 +140,6 @@ class RenderScheduler:
             for state in self._clients.values():
                 state.rendered_version, state.rendered_height = -1, 0
 
-    def set_max_resolution(self, height: int) -> None:
-        self.max_resolution = max(8, int(height))
-        self.invalidate()
-
     # -- what the renderer asks ----------------------------------------------------------------------------------
 
     def heights(self, camera: BrowserCamera) -> list[int]:

@@ -12,7 +12,7 @@ from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler, Rounds
 from nerf_lightning.rendering.march_fixed import march_rays_fixed
 from nerf_lightning.rendering.occupancy import march_rays
 from nerf_lightning.rendering.packed import RaySamples
-from nerf_lightning.syncs import HOST_DATA
+from nerf_lightning.training.syncs import HOST_DATA
 from tests.conftest import run_cli
 from tests.rendering.test_occupancy import UNIT_BOX, BallField, random_grid, rays_towards_origin
 
@@ -157,7 +157,7 @@ def test_a_fixed_shape_training_step_never_waits_for_the_device(preset, tmp_path
     counts = tmp_path / "syncs.json"
     run_cli("train", *PRESETS[preset], "trainer.max_steps=5", "data.val_every=null", "trainer.log_every_n_steps=100",
             "data.batch_size=256", "model.compile=false",
-            f"+callbacks.syncs={{_target_: nerf_lightning.syncs.CountHostSyncs, path: {counts}, skip_nan_guard: true, host_data: true}}",
+            f"+callbacks.syncs={{_target_: nerf_lightning.training.syncs.CountHostSyncs, path: {counts}, skip_nan_guard: true, host_data: true}}",
             f"paths.output_dir={tmp_path / 'run'}", cwd=tmp_path)
     steps = json.loads(counts.read_text())
     assert len(steps) == 5

@@ -19,7 +19,7 @@ from nerf_lightning.rendering import (
     march_rays,
 )
 from nerf_lightning.rendering.occupancy import step_edges
-from nerf_lightning.syncs import HostSyncs
+from nerf_lightning.training.syncs import HostSyncs
 
 UNIT_BOX = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
 CUBE = list(Contraction.bounds)

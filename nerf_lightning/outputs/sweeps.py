@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from nerf_lightning.training.callbacks import history_psnr
 from nerf_lightning.io import write_atomic
-from nerf_lightning.plots import plot_psnr_curves
+from nerf_lightning.outputs.plots import plot_psnr_curves
 
 
 def find_jobs(sweep_dir: Path) -> list[Path]:

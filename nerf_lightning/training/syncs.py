@@ -101,7 +101,7 @@ class CountHostSyncs(L.Callback):
     a validation ends the step before it. ``skip_nan_guard`` turns the model's NaN guard off
     (``on_before_backward``, which reads the loss back); ``host_data`` counts tensors made from host data too
     (:class:`HostSyncs`; for a count on a CPU):
-    ``+callbacks.syncs={_target_: nerf_lightning.syncs.CountHostSyncs, path: syncs.json}``.
+    ``+callbacks.syncs={_target_: nerf_lightning.training.syncs.CountHostSyncs, path: syncs.json}``.
 
     On CUDA it also counts what CUDA itself reports as a synchronizing call (``torch.cuda.set_sync_debug_mode``,
     under ``cuda (synchronizing call)``): copies between the host and the device too, which no aten op names.

@@ -1,3 +1,3 @@
 """nerf-lightning: neural fields and NeRF experiments on PyTorch Lightning, Kornia and Hydra."""
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"

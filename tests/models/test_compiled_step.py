@@ -111,7 +111,7 @@ def test_the_rays_a_step_follow_the_sample_budget_read_a_step_late_and_compile_o
 def test_a_ray_budget_needs_a_sampler_of_fixed_capacity(scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     with pytest.raises(ValueError, match="callbacks.ray_budget sizes the rays a step to an occupancy grid's model.sampler.capacity"):
-        cfg = compose_config(["experiment=fast", "data/scene=procedural", "data.scene.size=32", "data.val_every=null"])
+        cfg = compose_config(["experiment=fast", "data.scene.size=32", "data.val_every=null"])
         trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False, callbacks=[RayBudget()])
         trainer.fit(instantiate(cfg.model), datamodule=instantiate(cfg.data))
 

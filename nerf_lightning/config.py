@@ -31,7 +31,7 @@ OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path))
 OBJECTS_02 = "in nerf-lightning 0.2, when samplers and the scene space became objects"
 VIEWER_03 = "in nerf-lightning 0.3, when the live viewer became a callback"
 MODES_04 = "after nerf-lightning 0.3, when the renderer's two modes became two renderers"
-DATA_04 = "in nerf-lightning 0.4, when data= came to name the DataModule (rays, views, pixels) and data/scene= the format"
+DATA_04 = "in nerf-lightning 0.4, when data= came to name the DataModule (rays, views, pixels), data/scene= the format"
 
 # data= choices that went: the old choice -> what to write now
 RENAMED_DATA = {**{name: f"data=rays data/scene={name} (data=views data/scene={name} for model=splat)"

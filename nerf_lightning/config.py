@@ -31,6 +31,12 @@ OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path))
 OBJECTS_02 = "in nerf-lightning 0.2, when samplers and the scene space became objects"
 VIEWER_03 = "in nerf-lightning 0.3, when the live viewer became a callback"
 MODES_04 = "after nerf-lightning 0.3, when the renderer's two modes became two renderers"
+DATA_04 = "in nerf-lightning 0.4, when data= came to name the DataModule (rays, views, pixels), data/scene= the format"
+
+# data= choices that went: the old choice -> what to write now
+RENAMED_DATA = {**{name: f"data=rays data/scene={name} (data=views data/scene={name} for model=splat)"
+                   for name in ("blender", "llff", "npz", "procedural", "transforms", "turntable")},
+                "image": "data=pixels"}
 
 # Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
@@ -65,6 +71,8 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
         if key == "model/renderer" and value.strip() == "volume":
             return (f"'model/renderer=volume' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=rounds "
                     "(its keys are the same), or model/renderer=table for a step of fixed shapes")
+        if key == "data" and value.strip() in RENAMED_DATA:
+            return f"'data={value.strip()}' was replaced {DATA_04} (see the README): use {RENAMED_DATA[value.strip()]}"
         for old, (new, note, why) in RENAMED_KEYS.items():
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")

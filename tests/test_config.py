@@ -46,7 +46,7 @@ def test_radiance_presets_compose_their_recipes():
 
 
 def test_the_paper_model_is_the_default_nerf():
-    cfg = compose_config(["model=nerf", "data=procedural", "paths.output_dir=/tmp/x"])
+    cfg = compose_config(["model=nerf", "data=rays", "data/scene=procedural", "paths.output_dir=/tmp/x"])
     field = cfg.model.field
     assert (field.position_frequencies, field.direction_frequencies, field.hidden_width, field.hidden_layers, field.skip_layer, field.view_width) == (10, 4, 256, 8, 4, 128)
     sampler = cfg.model.sampler
@@ -80,7 +80,7 @@ def test_the_field_and_sampler_groups_mix_freely():
 
     for field in ("nerf", "hash_grid", "tensorf"):
         for sampler, kind in (("stratified", StratifiedSampler), ("hierarchical", HierarchicalSampler)):
-            cfg = compose_config(["model=ngp", f"model/field={field}", f"model/sampler={sampler}", "data=procedural", "paths.output_dir=/tmp/x"])
+            cfg = compose_config(["model=ngp", f"model/field={field}", f"model/sampler={sampler}", "data=rays", "data/scene=procedural", "paths.output_dir=/tmp/x"])
             model = instantiate(cfg.model)
             assert isinstance(model.sampler, kind)
             if sampler == "hierarchical":  # the coarse network is built like the field, with its own weights

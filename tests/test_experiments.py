@@ -57,7 +57,7 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
         return overrides + ["data/scene=turntable", "data.scene.n_photos=12", "data.scene.size=32", "data.scene.holdout_every=4"]
     if cfg.data.get("object_box"):  # an object's box needs its masks: the built-in turntable, 12 photos of 32x32
         overrides = [o for o in overrides if not o.startswith("data.scene.max_views")]
-        return overrides + ["data=turntable", "data.scene.n_photos=12", "data.scene.size=32", "data.scene.holdout_every=4",
+        return overrides + ["data/scene=turntable", "data.scene.n_photos=12", "data.scene.size=32", "data.scene.holdout_every=4",
                             *(["model.sampler.bake_resolution=16"] if (cfg.model.get("sampler") or {}).get("bake_resolution") else [])]
     for fmt in ("blender", "npz", "llff", "transforms"):
         if scene_target.endswith(f"load_{fmt}"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -11,7 +12,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from nerf_lightning.cli.keys import check_viz_cameras_keys
-from nerf_lightning.errors import report_errors
+from nerf_lightning.config import renamed_key_message
+from nerf_lightning.errors import fail, report_errors
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +46,7 @@ def visualise(cfg: DictConfig) -> Path | object:
 
 @hydra.main(version_base="1.3", config_path="pkg://nerf_lightning.conf", config_name="viz")
 @report_errors("nerf-viz-cameras")
-def main(cfg: DictConfig) -> None:
+def run(cfg: DictConfig) -> None:
     result = visualise(cfg)
     if cfg.viz.backend == "viser":
         try:
@@ -52,6 +54,13 @@ def main(cfg: DictConfig) -> None:
                 time.sleep(1.0)
         except KeyboardInterrupt:
             result.stop()
+
+
+def main() -> None:
+    message = renamed_key_message(sys.argv[1:])  # data=blender and the like, the choices of before 0.4
+    if message:
+        fail("nerf-viz-cameras", message)
+    run()
 
 
 if __name__ == "__main__":

@@ -119,7 +119,7 @@ class RadianceFieldModule(SceneModule):
         datamodule = getattr(getattr(self, "trainer", None), "datamodule", None)
         if stage == "fit" and isinstance(datamodule, ViewDataModule):
             raise ValueError("a radiance field trains on random rays, and data=views serves whole "
-                             "training views: use data=<format> (blender, llff, transforms, ...), which serves rays")
+                             "training views: use data=rays (with data/scene=<format>), which serves rays")
         precision = str(getattr(getattr(self, "trainer", None), "precision", "32-true"))
         for name, module in self.named_modules():
             if getattr(module, "table_precision", None) == torch.float16 and stage == "fit" and not precision.startswith("16"):

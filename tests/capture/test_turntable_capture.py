@@ -73,7 +73,7 @@ def test_without_masks_the_room_keeps_the_photos_from_being_posed_around_the_obj
 def test_a_turntable_capture_trains_on_its_object_alone_and_is_scored_on_both(tmp_path, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     run = tmp_path / "run"
-    result = run_cli("train", "experiment=fast", "data=turntable", "data.scene.size=128", "model.field.aabb=[-0.5,-0.5,-0.5,0.5,0.5,0.5]",
+    result = run_cli("train", "experiment=fast", "data/scene=turntable", "data.scene.size=128", "model.field.aabb=[-0.5,-0.5,-0.5,0.5,0.5,0.5]",
                      "trainer.max_steps=1500", "data.val_every=1500", "trainer.enable_progress_bar=false", f"paths.output_dir={run}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     result = run_cli("evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", f"output_dir={tmp_path / 'eval'}", cwd=tmp_path)

@@ -239,14 +239,14 @@ def _refused(check, cfg) -> bool:
 
 
 def test_an_llff_capture_loads_as_360_from_the_command_line_value(procedural_scene, tmp_path):
-    """The README's `nerf-train experiment=nerfacto_360_cpu data=llff data.root=... data.scene.layout=360`: Hydra reads
+    """The README's `nerf-train experiment=nerfacto_360_cpu data/scene=llff data.root=... data.scene.layout=360`: Hydra reads
     360 as a number, which the loader takes as the name."""
     from hydra.utils import instantiate
 
     from tests.data.test_llff import write_llff
 
     root = write_llff(procedural_scene.train.subset(list(range(0, 80, 4))), tmp_path / "capture")
-    cfg = compose_config(["experiment=nerfacto_360_cpu", "data=llff", f"data.root={root}", "data.scene.layout=360",
+    cfg = compose_config(["experiment=nerfacto_360_cpu", "data/scene=llff", f"data.root={root}", "data.scene.layout=360",
                           "data.scene.downscale=2", "data.scene.holdout_every=5", f"paths.output_dir={tmp_path / 'run'}"])
     assert cfg.data.scene.layout == 360
     keys.check_train_keys(cfg)
@@ -256,4 +256,4 @@ def test_an_llff_capture_loads_as_360_from_the_command_line_value(procedural_sce
     assert scene.near == 0.05 and "spiral" not in scene.splits  # the 360 layout: normalised, no forward spiral
     assert float(scene.train.c2w[:, :3, 3].abs().max()) <= 1.0 + 1e-5
     with pytest.raises(ValueError, match="data.scene.layout must be one of .* got '180'"):
-        instantiate(compose_config(["data=llff", f"data.root={root}", "data.scene.layout=180", f"paths.output_dir={tmp_path / 'run'}"]).data).setup()
+        instantiate(compose_config(["data=rays", "data/scene=llff", f"data.root={root}", "data.scene.layout=180", f"paths.output_dir={tmp_path / 'run'}"]).data).setup()

@@ -94,7 +94,7 @@ def test_evaluation_refuses_a_scene_that_no_longer_loads_where_the_model_learnt_
 
     from nerf_lightning.checkpoints import load_run_data
 
-    cfg = make_config("experiment=nerfacto_object_cpu", "data=turntable")
+    cfg = make_config("experiment=nerfacto_object_cpu", "data/scene=turntable")
     config = {"data": OmegaConf.to_container(cfg.data, resolve=True)}
     config["data"]["scene"] = {"_target_": "tests.data.test_object_box.cached_turntable", "_partial_": True}
     _CACHED.append(turntable)

@@ -19,8 +19,8 @@ from nerf_lightning.config import compose_config
 from nerf_lightning.models import radiance_field
 
 PRESETS = {  # the presets as they are, on small scenes, their buffers sized for 256 rays (as tests/rendering/test_fixed_shapes.py)
-    "nerfacto_360_gpu": ["experiment=nerfacto_360_gpu", "data=turntable", "data.scene.size=32", "data.scene.n_photos=16"],
-    "fast_blender_gpu": ["experiment=fast_blender_gpu", "data=procedural", "data.scene.size=32", "model.sampler.grid.resolution=32",
+    "nerfacto_360_gpu": ["experiment=nerfacto_360_gpu", "data/scene=turntable", "data.scene.size=32", "data.scene.n_photos=16"],
+    "fast_blender_gpu": ["experiment=fast_blender_gpu", "data/scene=procedural", "data.scene.size=32", "model.sampler.grid.resolution=32",
                          "model.sampler.capacity=16384", "model.sampler.march_capacity=65536"],
 }
 
@@ -111,7 +111,7 @@ def test_the_rays_a_step_follow_the_sample_budget_read_a_step_late_and_compile_o
 def test_a_ray_budget_needs_a_sampler_of_fixed_capacity(scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     with pytest.raises(ValueError, match="callbacks.ray_budget sizes the rays a step to an occupancy grid's model.sampler.capacity"):
-        cfg = compose_config(["experiment=fast", "data=procedural", "data.scene.size=32", "data.val_every=null"])
+        cfg = compose_config(["experiment=fast", "data.scene.size=32", "data.val_every=null"])
         trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False, callbacks=[RayBudget()])
         trainer.fit(instantiate(cfg.model), datamodule=instantiate(cfg.data))
 

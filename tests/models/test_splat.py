@@ -124,7 +124,7 @@ def test_a_view_drawn_to_look_at_is_the_view_drawn_to_train(make_config):
 def test_splats_refuse_rays_and_a_contracted_space_by_name(make_config, scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     with pytest.raises(ValueError, match="Gaussian splats train on whole views or patches: use data=views"):
-        train(make_config("experiment=splat_procedural", "data=procedural", "trainer.max_steps=1", "trainer.enable_progress_bar=false"))
+        train(make_config("experiment=splat_procedural", "data=rays", "trainer.max_steps=1", "trainer.enable_progress_bar=false"))
     with pytest.raises(ValueError, match="data.ndc and data.contract must be false"):
         train(make_config(*QUICK, "data.contract=true", "trainer.max_steps=1"))
 

@@ -143,9 +143,9 @@ def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampl
 # (model.compile=false): a dispatch mode sees every op of a plain step, and none inside a compiled graph (whose ops
 # are those of the plain one).
 PRESETS = {  # the presets as they are, on small scenes, their buffers sized for 256 rays
-    "nerfacto_360_gpu": ["experiment=nerfacto_360_gpu", "data=turntable", "data.scene.size=32", "data.scene.n_photos=16"],
+    "nerfacto_360_gpu": ["experiment=nerfacto_360_gpu", "data/scene=turntable", "data.scene.size=32", "data.scene.n_photos=16"],
     # the grid refreshed every other step, past its warm-up from the second: the refreshes on the device counted too
-    "fast_blender_gpu": ["experiment=fast_blender_gpu", "data=procedural", "data.scene.size=32", "model.sampler.grid.resolution=32",
+    "fast_blender_gpu": ["experiment=fast_blender_gpu", "data/scene=procedural", "data.scene.size=32", "model.sampler.grid.resolution=32",
                          "model.sampler.capacity=16384", "model.sampler.march_capacity=65536",
                          "model.sampler.grid.update_every=2", "model.sampler.grid.warmup_steps=2"],
 }

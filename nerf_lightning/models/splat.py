@@ -2,8 +2,9 @@
 
 Each step draws one training view (or a patch: ``data=views``), projects the Gaussians into its camera
 (:mod:`~nerf_lightning.splats.projection`), rasterises them (:mod:`~nerf_lightning.splats.rasterize`) and takes
-0.8 L1 + 0.2 (1 - SSIM) against the photo; a strategy (:mod:`~nerf_lightning.splats.strategy`) grows and prunes
-the Gaussians from the screen-space gradients.
+the loss (``model.loss``, :class:`~nerf_lightning.splats.loss.SplatLoss`: 0.8 L1 + 0.2 (1 - SSIM)) against the photo;
+a strategy (:mod:`~nerf_lightning.splats.strategy`) grows and prunes the Gaussians from the screen-space gradients.
+Where the Gaussians start is an object of its own (``model/start``, :mod:`~nerf_lightning.models.splat_start`).
 """
 
 from __future__ import annotations

@@ -102,3 +102,13 @@ def test_the_start_and_loss_refuse_bad_values_by_their_keys():
         SplatLoss(ssim_weight=2)
     with pytest.raises(ValueError, match="model.loss.mask_loss must be a number >= 0"):
         SplatLoss(mask_loss=-1.0)
+
+
+def test_nerf_train_answers_a_start_key_of_before_0_4_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "nerf_lightning.cli.train", "experiment=splat_360_cpu", "model.triangulate=true"],
+                            cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode != 0 and "Traceback" not in result.stderr
+    assert "'model.triangulate' was moved in nerf-lightning 0.4" in result.stderr and "use model/start=triangulated" in result.stderr

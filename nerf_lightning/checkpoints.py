@@ -13,7 +13,7 @@ from typing import Any
 
 import lightning as L
 import torch
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
 
@@ -156,6 +156,17 @@ def read_checkpoint(ckpt_path: str | Path, map_location: str | torch.device = "c
     return checkpoint
 
 
+def upgraded_config(config: dict[str, Any]) -> dict[str, Any]:
+    """The run's config with its model's keys where this version builds them: a model class whose keys moved reads an
+    older checkpoint's model config through its static ``upgrade_config`` (model config -> model config)."""
+    try:
+        model_class = get_class(config["model"]["_target_"])
+    except (ImportError, AttributeError, KeyError, TypeError, ValueError):  # instantiate says what is wrong with it
+        return config
+    upgrade = getattr(model_class, "upgrade_config", None)
+    return config if upgrade is None else {**config, "model": upgrade(config["model"])}
+
+
 def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust: bool = False) -> tuple[L.LightningModule, dict[str, Any]]:
     """Load a nerf-train checkpoint (:func:`read_checkpoint`) on the CPU, then move it to ``device`` (``auto``, ``cpu``,
     ``cuda``, ``mps``: :func:`~nerf_lightning.devices.resolve_device`): the model in eval mode and the run's resolved config.
@@ -171,7 +182,7 @@ def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust:
     enable_tf32()
     checkpoint = read_checkpoint(path, "cpu", trust=trust)
     info = checkpoint["nerf_lightning"]
-    config = info["config"]
+    config = upgraded_config(info["config"])
     model = instantiate(OmegaConf.create(config["model"]))
     model.on_load_checkpoint(checkpoint)
     model.load_state_dict(checkpoint["state_dict"])

@@ -37,6 +37,7 @@ DATA_04 = "in nerf-lightning 0.4, when data= came to name the DataModule (rays, 
 RENAMED_DATA = {**{name: f"data=rays data/scene={name} (data=views data/scene={name} for model=splat)"
                    for name in ("blender", "llff", "npz", "procedural", "transforms", "turntable")},
                 "image": "data=pixels"}
+START_04 = "in nerf-lightning 0.4, when the splats' start and loss became objects (model/start, model.loss)"
 
 # Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
@@ -53,7 +54,20 @@ RENAMED_KEYS = {
     **{f"model.field.{key}": (f"model.field.encoding.{key}", "", OBJECTS_02)
        for key in ("n_levels", "features_per_level", "log2_table_size", "base_resolution", "max_resolution")},
     **{f"viewer_{key}": (f"callbacks.viewer.{key}", "with viewer=live", VIEWER_03) for key in ("host", "port", "time_share")},
+    "model.random_count": ("model.start.random.count", "", START_04),
+    "model.random_start": ("model/start/random=box or model/start/random=views", "", START_04),
+    "model.random_near": ("model.start.random.near", "with model/start/random=views", START_04),
+    "model.random_extent": ("model.start.random.extent", "with model/start/random=views: model.start.random.far", START_04),
+    "model.random_scale": ("model.start.random.scale", "", START_04),
+    "model.triangulate": ("model/start=triangulated", "model/start=points for false", START_04),
+    "model.random_beside_points": ("model.start.beside", "", START_04),
+    "model.ssim_weight": ("model.loss.ssim_weight", "", START_04),
+    "model.sh_degree_interval": ("model.gaussians.sh_degree_interval", "", START_04),
 }
+
+# Keys that moved for the splats alone (the radiance fields keep them where they were): answered where the command
+# line chooses the splats (model=splat, or an experiment=splat_* preset)
+SPLAT_RENAMED_KEYS = {key: (f"model.loss.{key[len('model.'):]}", "", START_04) for key in ("model.mask_loss", "model.train_background")}
 
 
 def renamed_key_message(overrides: Sequence[str]) -> str | None:
@@ -77,4 +91,16 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")
                 return f"'{key}' was moved {why} (see the README): use {now}"
+    return splat_key_message(overrides)
+
+
+def splat_key_message(overrides: Sequence[str]) -> str | None:
+    """:func:`renamed_key_message` for the keys of :data:`SPLAT_RENAMED_KEYS`, where the overrides choose the splats."""
+    if not any(override.startswith(("model=splat", "experiment=splat_")) for override in overrides):
+        return None
+    keys = [override.partition("=")[0].lstrip("+~").split("@", 1)[0] for override in overrides]
+    for key in keys:
+        if key in SPLAT_RENAMED_KEYS:
+            new, _, why = SPLAT_RENAMED_KEYS[key]
+            return f"'{key}' was moved for the splats {why} (see the README): use {new}"
     return None

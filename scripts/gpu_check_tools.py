@@ -27,8 +27,8 @@ SCENES = ("lego", "fox", "moldGoldCape")
 SMALL_GRID = ["model.field.encoding.log2_table_size=14", "model.field.encoding.compile_evaluation=false", "model.sampler.grid.resolution=32", "model.sampler.capacity=16384", "model.sampler.march_capacity=65536",
               "data.batch_size=256"]
 SMOKE_OVERRIDES = {"fast_blender_gpu": ["data.scene.downscale=8", *SMALL_GRID],
-                   "splat_blender_gpu": ["data.scene.downscale=8", "model.random_count=2000"],
-                   "splat_360_gpu": ["data.scene.downscale=16", "model.random_count=2000"],
+                   "splat_blender_gpu": ["data.scene.downscale=8", "model.start.random.count=2000"],
+                   "splat_360_gpu": ["data.scene.downscale=16", "model.start.random.count=2000"],
                    "splat_object_gpu": ["data.scene.downscale=16", "model.strategy.max_count=20000"],
                    "nerfacto_360_gpu": ["data.scene.downscale=16", "model.field.encoding.log2_table_size=14", "data.batch_size=256"]}
 

@@ -44,7 +44,7 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
     scene_target = cfg.data.scene._target_ if "scene" in cfg.data else ""
     overrides = [f"experiment={experiment}", *TINY]
     if cfg.data._target_.endswith("ViewDataModule"):  # a view a step (no batch size); a few Gaussians
-        overrides = [o for o in overrides if not o.startswith("data.batch_size")] + ["model.random_count=500"]
+        overrides = [o for o in overrides if not o.startswith("data.batch_size")] + ["model.start.random.count=500"]
         if cfg.data.patch_size is not None:  # patches of the tiny views
             overrides.append("data.patch_size=8")
     if cfg.data._target_.endswith("PixelDataModule"):

@@ -53,7 +53,7 @@ def test_the_same_seed_gives_the_same_metrics_from_memory_or_memory_mapped_image
 
 def test_the_same_seed_gives_the_same_metrics_for_splats_drawn_by_the_tile_rasteriser(cached_scene, tmp_path):
     # the tile rasteriser's threads each add into their own slots, summed in a fixed order: no race reaches the weights
-    small = ["experiment=splat_procedural", "trainer.accelerator=cpu", "data.scene.size=32", "model.random_count=2000",
+    small = ["experiment=splat_procedural", "trainer.accelerator=cpu", "data.scene.size=32", "model.start.random.count=2000",
              "model.rasterizer=tiles", "trainer.max_steps=60", "data.val_every=60", "data.val_views=1",
              "model.strategy.refine_start=20", "model.strategy.refine_every=20", "trainer.enable_progress_bar=false",
              "trainer.enable_model_summary=false"]
@@ -125,7 +125,7 @@ def test_nerf_train_prints_no_lightning_cloud_adverts(tmp_path):
 
 # a splat run (0.8 L1 + 0.2 D-SSIM) and a proposal run (interlevel and distortion terms): neither loss is an MSE
 CURVE_RUNS = {
-    "splats": ["experiment=splat_procedural", "data.scene.size=32", "model.random_count=2000", "trainer.max_steps=20"],
+    "splats": ["experiment=splat_procedural", "data.scene.size=32", "model.start.random.count=2000", "trainer.max_steps=20"],
     "proposal": [*(o for o in SMALL_FAST if not o.startswith("model.sampler.")), "model/sampler=proposal", "~model.sampler.grid",
                  "~model.sampler.step_size",
                  "model.sampler.proposal_samples=[32,16]", "model.sampler.field_samples=8", "trainer.max_steps=20"],

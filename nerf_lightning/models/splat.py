@@ -2,8 +2,9 @@
 
 Each step draws one training view (or a patch: ``data=views``), projects the Gaussians into its camera
 (:mod:`~nerf_lightning.splats.projection`), rasterises them (:mod:`~nerf_lightning.splats.rasterize`) and takes
-0.8 L1 + 0.2 (1 - SSIM) against the photo; a strategy (:mod:`~nerf_lightning.splats.strategy`) grows and prunes
-the Gaussians from the screen-space gradients.
+the loss (``model.loss``, :class:`~nerf_lightning.splats.loss.SplatLoss`: 0.8 L1 + 0.2 (1 - SSIM)) against the photo;
+a strategy (:mod:`~nerf_lightning.splats.strategy`) grows and prunes the Gaussians from the screen-space gradients.
+Where the Gaussians start is an object of its own (``model/start``, :mod:`~nerf_lightning.models.splat_start`).
 """
 
 from __future__ import annotations
@@ -16,34 +17,29 @@ from typing import Any
 import torch
 from torch.profiler import record_function
 
-from nerf_lightning.capture.choices import COLMAP_EXTRA
 from nerf_lightning.data.batches import ViewBatch
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background
-from nerf_lightning.data.points import SparsePoints
 from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
-from nerf_lightning.errors import MissingExtraError
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
-from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
+from nerf_lightning.metrics import mse_to_psnr
+from nerf_lightning.models.base import SceneModule
+from nerf_lightning.models.splat_config import config_before_04
+from nerf_lightning.models.splat_start import SparsePointsStart, Start
 from nerf_lightning.parameters.exposure import ViewExposure
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
-from nerf_lightning.splats.loss import photometric_loss
+from nerf_lightning.splats.loss import SplatLoss
 from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
 from nerf_lightning.splats.rasterize import MAX_PAIRS
 from nerf_lightning.splats.rasterizers import AUTO, TILES, check_rasterizer, choose_rasterizer, device_for_splats, rasterize_view
 from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
-from nerf_lightning.splats.start import points_in_visual_hull, points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
 
 log = logging.getLogger(__name__)
-
-# fewer triangulated points than this start no Gaussians: a capture whose views barely match, for the random start
-MIN_TRIANGULATED = 100
 
 
 class SplatModule(SceneModule):
@@ -56,37 +52,24 @@ class SplatModule(SceneModule):
     ``val/depth_error`` where the scene has true depth) over whole held-out views.
 
     Args:
-        gaussians: the :class:`~nerf_lightning.splats.gaussians.Gaussians` (empty until fitting starts: they start
-            from the capture's sparse points, else from ``random_count`` random points: ``random_start="box"``
-            uniform in a cube of half-side ``random_extent`` about the origin with random colours (3DGS's start for
-            the synthetic scenes), ``"views"`` on random training pixels' rays at camera depths uniform between
-            ``random_near`` (None: the scene's near bound) and ``random_extent``, with their pixels' colours (real captures:
-            :mod:`~nerf_lightning.splats.start`)).
-        strategy: densification (:class:`~nerf_lightning.splats.strategy.DefaultStrategy` or
-            :class:`~nerf_lightning.splats.strategy.MCMCStrategy`, whose regulariser joins the loss), or None.
+        gaussians: the :class:`~nerf_lightning.splats.gaussians.Gaussians` (empty until fitting starts; their colours'
+            degree goes up every ``gaussians.sh_degree_interval`` steps of training).
         optimizer: builds the optimiser (Adam, eps 1e-15) from the groups (a Hydra ``_partial_``).
         learning_rates: each parameter's learning rate (gsplat's): ``means`` (times the scene scale, decaying to
             ``means_final_ratio`` of it over ``steps``), ``log_scales``, ``quats``, ``opacity_logits``, ``sh0``, ``shN``.
+        scheduler: a learning-rate scheduler over every group (a Hydra ``_partial_``), or None.
+        strategy: densification (:class:`~nerf_lightning.splats.strategy.DefaultStrategy` or
+            :class:`~nerf_lightning.splats.mcmc.MCMCStrategy`, whose regulariser joins the loss), or None.
         steps: the steps the means' learning rate decays over (the run's ``trainer.max_steps``).
-        sh_degree_interval: the colours' spherical-harmonic degree goes up by one every so many steps, to the
-            Gaussians' ``sh_degree``.
-        ssim_weight: the loss is (1 - w) L1 + w (1 - SSIM).
+        start: where the Gaussians start when fitting starts on a new run (``model/start``:
+            :mod:`~nerf_lightning.models.splat_start`); None: the capture's sparse points, else a random box.
         antialiased: Mip-Splatting's opacity compensation of the low-pass filter.
         rasterizer: which rasteriser draws (:mod:`~nerf_lightning.splats.rasterizers`): ``auto`` (numba tiles on a
             CPU, plain PyTorch on a GPU), ``tiles`` or ``pairs`` (plain PyTorch everywhere).
         max_pairs: (Gaussian, pixel) pairs drawn at once by the ``pairs`` rasteriser
             (:mod:`~nerf_lightning.splats.rasterize`): the memory a view takes, about 100 bytes a pair with gradients.
-        random_count, random_start, random_near, random_extent: the random start of a capture without sparse points.
-        random_scale: the random start's Gaussians' scale, a multiple of their 3 nearest neighbours' mean distance
-            (None: ``gaussians.initial_scale``, which sparse points start at): a random cloud is denser than its
-            detail, and below 1 it covers each pixel with fewer Gaussians while densification has not yet shaped them.
-        triangulate: a capture without sparse points gets them from its training views and their poses
-            (:func:`~nerf_lightning.capture.triangulate.triangulate_views`: COLMAP's point triangulator through pycolmap,
-            the colmap extra; inside the masks where the views have them), and the Gaussians start there; where
-            pycolmap is missing or fewer than :data:`MIN_TRIANGULATED` points come back, one warning and the random start.
-        random_beside_points: random start points added beside the sparse points (read or triangulated), placed as the
-            random start places them, at ``random_scale``: where the points miss (surfaces without features, what few
-            views see) densification has nothing to grow from.
+        loss: what a training step is scored by (:class:`~nerf_lightning.splats.loss.SplatLoss`: the SSIM's weight,
+            the mask loss, the training background); None: its defaults.
         appearance: a learnt colour transform for each training view
             (:class:`~nerf_lightning.splats.appearance.ViewColourAffine`: the Gaussians' colours in a training view's
             render, not the background, through its affine map before the loss; its own learning rate, its penalty
@@ -97,46 +80,30 @@ class SplatModule(SceneModule):
             (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`: the training view's c2w corrected before
             projecting; its own learning rate, its penalties logged as ``train/loss_camera_*``); None keeps the poses
             as loaded. Held-out views keep their loaded poses.
-        train_background: what a training view shows where its Gaussians leave it transparent: ``scene`` (the scene
-            space's background colour) or ``random`` (one random colour a step, gsplat's ``random_bkgd``; with
-            ``data.masks=background`` the photo's pixels outside the mask show that colour too): a Gaussian then
-            cannot stand for the background by being transparent, nor a dark surface by letting black through.
-            Held-out views are drawn over the scene's background.
-        mask_loss: the weight of a binary cross-entropy between each training pixel's opacity and its object mask
-            (NeuS's mask loss; logged as ``train/loss_mask``), with ``data.masks=background``: the Gaussians are
-            taught where the object ends by the masks themselves, not only by the background's colour. 0: none.
     """
 
     kind = "splats"
+    # a checkpoint's model config of before 0.4 (the start's, the loss's keys at the top) read as this one's
+    upgrade_config = staticmethod(config_before_04)
 
     def __init__(self, gaussians: Gaussians, optimizer: Callable[..., torch.optim.Optimizer], learning_rates: dict[str, float],
-                 strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
-                 means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
-                 rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
-                 random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False,
-                 random_beside_points: int = 0, appearance: ViewColourAffine | ViewExposure | None = None, camera_refinement: CameraRefinement | None = None,
-                 train_background: str = "scene", mask_loss: float = 0.0) -> None:
+                 scheduler: Callable[..., Any] | None = None, strategy: Strategy | None = None, steps: int = 30_000,
+                 means_final_ratio: float = 0.01, start: Start | None = None, antialiased: bool = False, rasterizer: str = AUTO,
+                 max_pairs: int = MAX_PAIRS, loss: SplatLoss | None = None, appearance: ViewColourAffine | ViewExposure | None = None,
+                 camera_refinement: CameraRefinement | None = None) -> None:
         super().__init__(optimizer, scheduler)
-        self.train_background = check_train_background(train_background)
-        self.mask_loss = check_mask_loss(mask_loss)
-        self.appearance, self.camera_refinement = appearance, camera_refinement
         missing = set(PARAMETERS) - set(learning_rates)
         if missing:
             raise ValueError(f"model.learning_rates needs a rate for {', '.join(sorted(missing))}")
         self.gaussians, self.strategy = gaussians, strategy
         self.learning_rates = dict(learning_rates)
-        self.steps, self.means_final_ratio, self.sh_degree_interval = steps, means_final_ratio, sh_degree_interval
-        self.ssim_weight, self.antialiased, self.max_pairs = ssim_weight, antialiased, max_pairs
+        self.steps, self.means_final_ratio = steps, means_final_ratio
+        self.start = SparsePointsStart() if start is None else start
+        self.loss = SplatLoss() if loss is None else loss
+        self.appearance, self.camera_refinement = appearance, camera_refinement
+        self.antialiased, self.max_pairs = antialiased, max_pairs
         check_rasterizer(rasterizer)  # a wrong name refused now, not at the first view
         self.rasterizer = rasterizer
-        if random_start not in ("box", "views"):
-            raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")
-        self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
-        if random_scale is not None and random_scale <= 0:
-            raise ValueError(f"model.random_scale must be > 0 (or null), got {random_scale}")
-        if random_beside_points < 0:
-            raise ValueError(f"model.random_beside_points must be >= 0, got {random_beside_points}")
-        self.random_scale, self.triangulate, self.random_beside_points = random_scale, triangulate, random_beside_points
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
         self._step_logged: tuple[torch.Tensor, torch.Tensor, float | None] | None = None  # rgb, image, mse, until logged
@@ -167,7 +134,7 @@ class SplatModule(SceneModule):
             if hasattr(self.strategy, "score_views"):  # a strategy that asks how the Gaussians draw in sampled views
                 self.strategy.score_views = self.view_scores
         if len(self.gaussians) == 0 and not getattr(self.trainer, "ckpt_path", None):  # a resumed run's come from its checkpoint
-            self.start_gaussians(datamodule.scene, getattr(datamodule, "mask_mode", None))
+            self.start(self.gaussians, datamodule.scene, getattr(datamodule, "mask_mode", None))
         self.check_memory(self.trainer.strategy.root_device)
 
     def check_memory(self, device: torch.device) -> None:
@@ -176,7 +143,7 @@ class SplatModule(SceneModule):
         memory = memory_of(device)
         cap = getattr(self.strategy, "cap_max", None) or getattr(self.strategy, "max_count", None) or 0
         count, key = (cap, "model.strategy.max_count (or cap_max)") if cap > len(self.gaussians) else \
-            (len(self.gaussians), "model.random_count (or the capture's sparse points)")
+            (len(self.gaussians), "model.start.random.count (or the capture's sparse points)")
         per_gaussian = 16 * (3 + 4 + 3 + 1 + 3 * coefficients_for(self.gaussians.sh_degree))  # 4 float32 copies
         if memory is not None and count * per_gaussian > memory / 2:
             raise ValueError(f"{key} = {count} Gaussians would take about {count * per_gaussian / 2**30:.1f} GiB with their "
@@ -185,79 +152,6 @@ class SplatModule(SceneModule):
 
     def use_space(self, space: SceneSpace) -> None:
         self.space = space.to(self.device)
-
-    def start_gaussians(self, scene: Any, mask_mode: str | None = None) -> None:
-        """The Gaussians' start: the capture's sparse points where it has them, else (``triangulate``) those
-        triangulated from its training views, with ``random_beside_points`` random points beside them; else
-        ``random_count`` random points (:meth:`random_points`)."""
-        generator = torch.Generator().manual_seed(0)
-        points = getattr(scene, "points", None)
-        if points is not None and len(points) > 0:
-            log.info("Gaussians start from the capture's %d sparse points", len(points))
-        else:
-            points = self.triangulated_points(scene.train, masks=mask_mode is not None) if self.triangulate else None
-        if points is None:
-            positions, colours = self.random_points(scene, mask_mode, self.random_count, generator, "the capture has no sparse points: ")
-            self.gaussians.initialise(positions, colours, generator, scale=self.random_scale)
-            return
-        positions, colours = points.positions, points.colours.float() / 255.0
-        if self.random_beside_points == 0:
-            self.gaussians.initialise(positions, colours, generator)
-            return
-        beside, beside_colours = self.random_points(scene, mask_mode, self.random_beside_points, generator, "beside the points, ")
-        random_scale = self.gaussians.initial_scale if self.random_scale is None else self.random_scale
-        scale = torch.cat([torch.full((len(positions),), self.gaussians.initial_scale), torch.full((len(beside),), random_scale)])
-        self.gaussians.initialise(torch.cat([positions, beside]), torch.cat([colours, beside_colours]), generator, scale=scale)
-
-    def random_points(self, scene: Any, mask_mode: str | None, count: int, generator: torch.Generator,
-                      said: str = "") -> tuple[torch.Tensor, torch.Tensor]:
-        """``count`` random start points -> positions (P, 3) and colours (P, 3) in [0, 1]: with ``random_start=views``,
-        on training pixels' rays (with ``data.masks=background``, inside the masks' visual hull, where fewer may come
-        back); else in a random box. The log says where, after ``said``."""
-        near = float(scene.near) if self.random_near is None else self.random_near
-        far = min(float(scene.far), self.random_extent)
-        if self.random_start == "views" and mask_mode == "background" and scene.train.masks is not None:
-            positions, colours = points_in_visual_hull(scene.train, near, far, count, generator)
-            log.info("%s%d Gaussians start at random inside the visual hull of the capture's masks (on masked pixels' rays at "
-                     "depths %g to %g that the other views see inside their masks)", said, len(positions), near, far)
-        elif self.random_start == "views":
-            log.info("%s%d Gaussians start at random on training pixels' rays at depths %g to %g, with their pixels' colours",
-                     said, count, near, far)
-            positions, colours = points_seen_by_views(scene.train, near, far, count, generator)
-        else:
-            log.info("%s%d Gaussians start uniform in [-%g, %g]^3 with random colours", said, count, self.random_extent, self.random_extent)
-            positions = (torch.rand(count, 3, generator=generator) * 2.0 - 1.0) * self.random_extent
-            colours = torch.rand(count, 3, generator=generator)
-        return positions, colours
-
-    @staticmethod
-    def triangulated_points(views: Any, masks: bool = True) -> SparsePoints | None:
-        """The sparse points triangulated from the training ``views`` and their poses (with ``masks``, inside the views'
-        masks, where they have them), kept in the cache for the next run on the same views
-        (:func:`~nerf_lightning.capture.triangulate.triangulate_views_once`); None, after one warning saying why, where
-        pycolmap is missing, fails, or too few points come back (the random start follows)."""
-        try:
-            from nerf_lightning.capture.triangulate import triangulate_views_once
-
-            points, report = triangulate_views_once(views, masks=masks)
-        except MissingExtraError:
-            log.warning("model.triangulate needs pycolmap, the colmap extra (%s); the Gaussians start at random instead", COLMAP_EXTRA)
-            return None
-        except (RuntimeError, ValueError, IndexError, KeyError) as error:  # what pycolmap raises where COLMAP gives up
-            log.warning("model.triangulate: COLMAP could not triangulate the %d training views (%s: %s); the Gaussians start at "
-                        "random instead", len(views), type(error).__name__, error)
-            return None
-        if len(points) < MIN_TRIANGULATED:
-            log.warning("model.triangulate: only %d points triangulated from the %d training views (%s); the Gaussians start at "
-                        "random instead", len(points), len(views), report["matches"])
-            return None
-        took = ", ".join(f"{stage} {value:.0f} s" for stage, value in report["seconds"].items())
-        if "cached" in report:  # the same training views triangulated by an earlier run
-            took = f"loaded from {report['cached']}: an earlier run on the same views made them in {sum(report['seconds'].values()):.0f} s"
-        log.info("the capture has no sparse points: %d triangulated from its %d training views and their poses (%s), reprojected "
-                 "within %.2f px on average; the Gaussians start there", len(points), len(views), took,
-                 report["mean_reprojection_error_px"])
-        return points
 
     def parameter_groups(self) -> list[dict[str, Any]]:
         """One group a parameter at its own learning rate; the means' scaled by the scene and decaying exponentially."""
@@ -290,10 +184,8 @@ class SplatModule(SceneModule):
     # -- drawing a camera ------------------------------------------------------------------------------------
 
     def sh_degree(self) -> int:
-        """The colours' degree now: one more every ``sh_degree_interval`` steps of training, all of it otherwise."""
-        if not self.training:
-            return self.gaussians.sh_degree
-        return min(self.global_step // max(self.sh_degree_interval, 1), self.gaussians.sh_degree)
+        """The colours' degree now: one more every ``gaussians.sh_degree_interval`` steps of training, all of it otherwise."""
+        return self.gaussians.degree_at(self.global_step) if self.training else self.gaussians.sh_degree
 
     @staticmethod
     def device_for(device: torch.device | str, asked: bool) -> torch.device:
@@ -405,7 +297,7 @@ class SplatModule(SceneModule):
         if self.camera_refinement is not None and camera_index is not None:
             c2w = self.camera_refinement.corrected_c2w(c2w[None].to(self.device, torch.float32), camera_index.reshape(1))[0]
         background = None  # the scene's
-        if self.train_background == "random":  # one colour a step, behind the Gaussians and outside the object
+        if self.loss.train_background == "random":  # one colour a step, behind the Gaussians and outside the object
             background = torch.rand(3, device=image.device, dtype=image.dtype)
             if "object_mask" in batch:
                 image = composite_background(image, batch["object_mask"], background)
@@ -424,9 +316,9 @@ class SplatModule(SceneModule):
         if mask is not None:
             rgb = torch.where(mask[..., None], rgb, image)
         with record_function("splats.loss"):
-            loss, mse = self.photometric_loss(rgb, image, mask)
-        if self.mask_loss:
-            mask_term = self.mask_loss * opacity_mask_loss(out["accumulation"], masks_for_mask_loss(batch))
+            loss, mse = self.loss.photometric(rgb, image, mask, fused=self.numba_draws())
+        if self.loss.mask_loss:
+            mask_term = self.loss.of_mask(out["accumulation"], batch.get("object_mask"))
             loss = loss + mask_term
             self.log("train/loss_mask", mask_term.detach(), on_step=True, on_epoch=False)
         if not loss.requires_grad:  # the view saw no Gaussian: nothing to learn, but the step goes on
@@ -456,16 +348,6 @@ class SplatModule(SceneModule):
             psnr = -10.0 * math.log10(mse) if mse > 0 else math.inf  # as mse_to_psnr has it
         self.log("train/psnr", psnr, on_step=True)
         self.log("train/gaussians", float(len(self.gaussians)), on_step=True)
-
-    def photometric_loss(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, float | None]:
-        """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given
-        (:func:`~nerf_lightning.splats.loss.photometric_loss`), and the mean squared error where it comes free: in one
-        numba pass where numba draws (:mod:`~nerf_lightning.splats.loss_fast`), else PyTorch's operators and None."""
-        if self.numba_draws():
-            from nerf_lightning.splats.loss_fast import photometric_loss_fast
-
-            return photometric_loss_fast(rgb, image, self.ssim_weight, mask)
-        return photometric_loss(rgb, image, self.ssim_weight, mask), None
 
     def on_after_backward(self) -> None:
         if self.strategy is not None and self._drawn is not None:

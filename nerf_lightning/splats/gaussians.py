@@ -33,23 +33,31 @@ class Gaussians(nn.Module):
         initial_scale: every Gaussian's scale at the start, as a multiple of the mean distance to its 3 nearest
             neighbours (3DGS: 1). Below 1, a random start covers each pixel with fewer Gaussians: fewer
             (Gaussian, pixel) pairs to draw while densification has not yet shaped them.
+        sh_degree_interval: in training the colours' degree goes up by one every so many steps, to ``sh_degree``
+            (:meth:`degree_at`; 3DGS's 1000).
     """
 
     variable_size_parameters = PARAMETERS
 
-    def __init__(self, sh_degree: int = 3, initial_opacity: float = 0.1, initial_scale: float = 1.0) -> None:
+    def __init__(self, sh_degree: int = 3, initial_opacity: float = 0.1, initial_scale: float = 1.0,
+                 sh_degree_interval: int = 1000) -> None:
         super().__init__()
         if not 0 <= sh_degree <= 3:
             raise ValueError(f"model.gaussians.sh_degree must be 0 to 3, got {sh_degree}")
         if initial_scale <= 0:
             raise ValueError(f"model.gaussians.initial_scale must be > 0, got {initial_scale}")
         self.sh_degree, self.initial_opacity, self.initial_scale = sh_degree, initial_opacity, initial_scale
+        self.sh_degree_interval = sh_degree_interval
         higher = coefficients_for(sh_degree) - 1
         for name, shape in zip(PARAMETERS, ((0, 3), (0, 4), (0, 3), (0,), (0, 1, 3), (0, higher, 3))):
             setattr(self, name, nn.Parameter(torch.zeros(shape)))
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
+
+    def degree_at(self, step: int) -> int:
+        """The colours' degree at training step ``step``: one more every ``sh_degree_interval`` steps, to ``sh_degree``."""
+        return min(step // max(self.sh_degree_interval, 1), self.sh_degree)
 
     @property
     def opacities(self) -> torch.Tensor:

@@ -9,18 +9,35 @@ photos' colours.
 With masks that cut the object out (``data.masks=background``) the start is the masks' visual hull
 (:func:`points_in_visual_hull`): points on the masked pixels' rays that every other view which sees them also
 sees inside its mask, so that the Gaussians start on the object, not in the black around it.
+
+The views come in as the Scene's ``Views`` hold them (any object with their fields: :class:`PosedViews`); which start
+a model takes, and from which scene, is the models' business (:mod:`~nerf_lightning.models.splat_start`).
 """
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import torch
 
-from nerf_lightning.data.image_stack import as_float_rgb
-from nerf_lightning.data.scene import Views
 from nerf_lightning.splats.projection import frame_positions
 
 
-def points_seen_by_views(views: Views, near: float, far: float, count: int,
+class PosedViews(Protocol):
+    """What a start reads of the training views (a Scene's ``Views`` has it): K (V, 3, 3), OpenCV c2w (V, 4, 4), the
+    size, images (V, H, W, 3) uint8 or float in [0, 1] or None, masks (V, H, W) bool or None."""
+
+    K: torch.Tensor
+    c2w: torch.Tensor
+    height: int
+    width: int
+    images: torch.Tensor | None
+    masks: torch.Tensor | None
+
+    def __len__(self) -> int: ...
+
+
+def points_seen_by_views(views: PosedViews, near: float, far: float, count: int,
                          generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """``count`` points on random training pixels' rays at camera depths uniform in [near, far] -> positions
     (count, 3) in the views' world and colours (count, 3) in [0, 1] (each its pixel's; grey where the views have
@@ -34,21 +51,22 @@ def points_seen_by_views(views: Views, near: float, far: float, count: int,
     return points_at_pixels(views, view, u, v, depth), colours_at_pixels(views, view, u, v)
 
 
-def points_at_pixels(views: Views, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+def points_at_pixels(views: PosedViews, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
     """(P,) view indices, pixel coordinates u, v and camera depths -> (P, 3) points on those pixels' rays in the world."""
     K, c2w = views.K[view].float(), views.c2w[view].float()
     in_camera = torch.stack([(u - K[:, 0, 2]) / K[:, 0, 0], (v - K[:, 1, 2]) / K[:, 1, 1], torch.ones_like(u)], dim=-1) * depth[:, None]
     return (c2w[:, :3, :3] @ in_camera[..., None])[..., 0] + c2w[:, :3, 3]
 
 
-def colours_at_pixels(views: Views, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+def colours_at_pixels(views: PosedViews, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """(P, 3) the colours of those pixels in [0, 1] (grey where the views have no images)."""
     if views.images is None:
         return torch.full((len(view), 3), 0.5)
-    return as_float_rgb(views.images[view, v.long().clamp(max=views.height - 1), u.long().clamp(max=views.width - 1)])
+    colours = views.images[view, v.long().clamp(max=views.height - 1), u.long().clamp(max=views.width - 1)]
+    return colours.to(torch.float32) / 255.0 if colours.dtype == torch.uint8 else colours
 
 
-def points_in_visual_hull(views: Views, near: float, far: float, count: int, generator: torch.Generator,
+def points_in_visual_hull(views: PosedViews, near: float, far: float, count: int, generator: torch.Generator,
                           agreement: float = 0.9, min_seen: float = 0.25, tries: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
     """``count`` points inside the visual hull of the training views' masks -> positions (count, 3) and colours
     (count, 3) in [0, 1]: candidates on random masked pixels' rays (depths uniform in [near, far]), kept where at least

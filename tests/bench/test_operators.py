@@ -27,7 +27,7 @@ def test_a_splat_gpu_preset_step_dispatches_at_most_its_budget_of_operators(make
     # splat_blender_gpu's model, optimiser and strategy on the built-in scene (a Blender-like object), on the CPU with
     # numba's tiles; steps 1 to 6, before any refinement (as a run's first 500 steps)
     cfg = make_config("experiment=splat_blender_gpu", "data/scene=procedural", "data.scene.size=48",
-                      "model.random_count=2000", "trainer.max_steps=6", "data.val_every=null", "trainer.accelerator=cpu",
+                      "model.start.random.count=2000", "trainer.max_steps=6", "data.val_every=null", "trainer.accelerator=cpu",
                       "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false", "callbacks=none", "~logger",
                       "+callbacks.operators._target_=nerf_lightning.bench.operators.StepOperatorCounter",
                       "+callbacks.operators.first=1", "+callbacks.operators.last=6")

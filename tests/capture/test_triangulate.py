@@ -1,5 +1,5 @@
 """Sparse points of a capture that has poses but no points, triangulated from its views with the poses held fixed
-(capture/triangulate.py), and the Gaussians' start from them (model.triangulate)."""
+(capture/triangulate.py), and the Gaussians' start from them (model/start=triangulated)."""
 
 from __future__ import annotations
 
@@ -113,7 +113,7 @@ def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_w
 
     import nerf_lightning.capture.triangulate as triangulate
 
-    cfg = make_config("experiment=splat_360_cpu", "model.triangulate=true", "model.random_count=500")
+    cfg = make_config("experiment=splat_360_cpu", "model/start=triangulated", "model.start.random.count=500")
     generator = torch.Generator().manual_seed(0)
     found = SparsePoints(torch.randn(300, 3, generator=generator), torch.randint(0, 256, (300, 3), dtype=torch.uint8, generator=generator))
     outcomes = {
@@ -127,14 +127,14 @@ def test_the_gaussians_start_at_the_triangulated_points_or_at_random_after_one_w
         monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(tmp_path / outcome))  # each outcome its own cache, none found
         model = instantiate(cfg.model)
         caplog.clear()
-        with caplog.at_level(logging.INFO, logger="nerf_lightning.models.splat"):
-            model.start_gaussians(procedural_scene)
+        with caplog.at_level(logging.INFO, logger="nerf_lightning.models.splat_start"):
+            model.start(model.gaussians, procedural_scene)
         warnings = [record for record in caplog.records if record.levelno == logging.WARNING]
         if outcome == "found":
             assert not warnings and "300 triangulated from its" in caplog.text
             torch.testing.assert_close(model.gaussians.means.detach(), found.positions)
         else:
-            assert len(warnings) == 1 and "model.triangulate" in warnings[0].getMessage(), caplog.text
+            assert len(warnings) == 1 and "model/start=triangulated" in warnings[0].getMessage(), caplog.text
             assert ("needs pycolmap" in warnings[0].getMessage()) == (outcome == "no pycolmap")
             assert ("could not triangulate" in warnings[0].getMessage()) == (outcome == "COLMAP fails")
             assert len(model.gaussians) == 500  # the random start

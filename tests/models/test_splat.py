@@ -17,7 +17,7 @@ from nerf_lightning.splats.strategy import DefaultStrategy
 from nerf_lightning.training import train
 
 QUICK = ["experiment=splat_procedural", "data.scene.size=32", "trainer.enable_progress_bar=false",
-         "model.random_count=3000", "data.val_views=2"]
+         "model.start.random.count=3000", "data.val_views=2"]
 
 
 def test_a_short_run_on_the_procedural_scene_passes_a_bar_well_above_its_mean_colour(make_config, scene_cache, monkeypatch):
@@ -146,7 +146,7 @@ def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():
     smaller.initialise(positions, torch.rand(5, 3))
     assert float(full.log_scales[0, 0]) == pytest.approx(math.log(2.0))  # (1 + 2 + 3) / 3
     torch.testing.assert_close(smaller.log_scales.detach(), full.log_scales.detach() + math.log(0.25))
-    # a start of its own scale (the model's random_scale) instead of initial_scale
+    # a start of its own scale (the random start's scale) instead of initial_scale
     full.initialise(positions, torch.rand(5, 3), scale=0.25)
     torch.testing.assert_close(full.log_scales.detach(), smaller.log_scales.detach())
     with pytest.raises(ValueError, match="initial_scale must be > 0"):
@@ -155,30 +155,30 @@ def test_the_start_scale_is_a_multiple_of_the_nearest_neighbours_distance():
         full.initialise(positions, torch.rand(5, 3), scale=-1.0)
 
 
-def test_sparse_points_start_at_initial_scale_and_a_random_start_at_random_scale(procedural_scene, make_config):
+def test_sparse_points_start_at_initial_scale_and_a_random_start_at_its_scale(procedural_scene, make_config):
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     from nerf_lightning.data.points import SparsePoints
 
-    cfg = make_config("experiment=splat_360_cpu", "model.triangulate=false", "model.random_count=200")
-    assert cfg.model.random_scale == 0.15 and cfg.model.gaussians.initial_scale == 1.0
+    cfg = make_config("experiment=splat_360_cpu", "model/start=points", "model.start.random.count=200")
+    assert cfg.model.start.random.scale == 0.15 and cfg.model.gaussians.initial_scale == 1.0
     random_start = instantiate(cfg.model)
-    random_start.start_gaussians(procedural_scene)
-    unscaled = instantiate(make_config("experiment=splat_360_cpu", "model.triangulate=false", "model.random_count=200",
-                                       "model.random_scale=null").model)
-    unscaled.start_gaussians(procedural_scene)  # the same seeded points, at initial_scale
+    random_start.start(random_start.gaussians, procedural_scene)
+    unscaled = instantiate(make_config("experiment=splat_360_cpu", "model/start=points", "model.start.random.count=200",
+                                       "model.start.random.scale=null").model)
+    unscaled.start(unscaled.gaussians, procedural_scene)  # the same seeded points, at initial_scale
     torch.testing.assert_close(random_start.gaussians.log_scales.detach(),
                                unscaled.gaussians.log_scales.detach() + math.log(0.15))
     points = SparsePoints(random_start.gaussians.means.detach().clone(), torch.full((200, 3), 128, dtype=torch.uint8))
     from_points = instantiate(cfg.model)
-    from_points.start_gaussians(dataclasses.replace(procedural_scene, points=points))
+    from_points.start(from_points.gaussians, dataclasses.replace(procedural_scene, points=points))
     torch.testing.assert_close(from_points.gaussians.log_scales.detach(), unscaled.gaussians.log_scales.detach())
-    with pytest.raises(InstantiationException, match="model.random_scale must be > 0"):
-        instantiate(make_config("experiment=splat_360_cpu", "model.random_scale=0").model)
-    # random points beside the sparse ones: the points first, at initial_scale, then the random ones at random_scale
-    beside = instantiate(make_config("experiment=splat_360_cpu", "model.random_count=200", "model.random_beside_points=50").model)
-    beside.start_gaussians(dataclasses.replace(procedural_scene, points=points))
+    with pytest.raises(InstantiationException, match="model.start.random.scale must be > 0"):
+        instantiate(make_config("experiment=splat_360_cpu", "model.start.random.scale=0").model)
+    # random points beside the sparse ones: the points first, at initial_scale, then the random ones at their scale
+    beside = instantiate(make_config("experiment=splat_360_cpu", "model.start.random.count=200", "model.start.beside=50").model)
+    beside.start(beside.gaussians, dataclasses.replace(procedural_scene, points=points))
     means = beside.gaussians.means.detach()
     assert len(means) == 250
     torch.testing.assert_close(means[:200], points.positions)
@@ -186,8 +186,8 @@ def test_sparse_points_start_at_initial_scale_and_a_random_start_at_random_scale
     together.initialise(means, torch.rand(250, 3))  # the union's neighbour distances, at 1
     torch.testing.assert_close(beside.gaussians.log_scales.detach()[:200], together.log_scales.detach()[:200])
     torch.testing.assert_close(beside.gaussians.log_scales.detach()[200:], together.log_scales.detach()[200:] + math.log(0.15))
-    with pytest.raises(InstantiationException, match="model.random_beside_points must be >= 0"):
-        instantiate(make_config("experiment=splat_360_cpu", "model.random_beside_points=-1").model)
+    with pytest.raises(InstantiationException, match="model.start.beside must be an integer >= 0"):
+        instantiate(make_config("experiment=splat_360_cpu", "model.start.beside=-1").model)
 
 
 def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(procedural_scene, make_config, tmp_path, caplog):
@@ -215,8 +215,8 @@ def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(proc
     cfg = make_config("experiment=splat_360_cpu", f"data.root={root}", "data.scene.downscale=1", "trainer.max_steps=3",
                       "data.val_every=null", "trainer.enable_progress_bar=false")
     model = instantiate(cfg.model)
-    with caplog.at_level(logging.INFO, logger="nerf_lightning.models.splat"):
-        model.start_gaussians(scene)
+    with caplog.at_level(logging.INFO, logger="nerf_lightning.models.splat_start"):
+        model.start(model.gaussians, scene)
     assert "Gaussians start from the capture's 300 sparse points" in caplog.text and "no sparse points" not in caplog.text
     torch.testing.assert_close(model.gaussians.means.detach(), scene.points.positions)
     torch.testing.assert_close(0.5 + SH_C0 * model.gaussians.sh0.detach()[:, 0], scene.points.colours.float() / 255.0, atol=1e-6, rtol=0)
@@ -259,7 +259,7 @@ def test_a_random_training_background_is_behind_the_gaussians_and_outside_the_ob
     from hydra.utils import instantiate
 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    model = instantiate(make_config(*QUICK, f"model.train_background={train_background}").model)
+    model = instantiate(make_config(*QUICK, f"model.loss.train_background={train_background}").model)
     model.log = lambda *args, **kwargs: None
     drawn_over = []
 
@@ -281,8 +281,8 @@ def test_a_random_training_background_is_behind_the_gaussians_and_outside_the_ob
         assert not torch.equal(drawn_over[0], drawn_over[1])
         for colour, target in zip(drawn_over, seen):
             assert torch.equal(target[mask], image[mask]) and torch.equal(target[~mask], colour.expand(int((~mask).sum()), 3))
-    with pytest.raises(InstantiationException, match="model.train_background must be one of scene, random, got 'noise'"):
-        instantiate(make_config(*QUICK, "model.train_background=noise").model)
+    with pytest.raises(InstantiationException, match="model.loss.train_background must be one of scene, random, got 'noise'"):
+        instantiate(make_config(*QUICK, "model.loss.train_background=noise").model)
 
 
 def test_the_mask_loss_teaches_the_gaussians_opacity_from_the_masks(make_config, scene_cache, monkeypatch):
@@ -291,7 +291,7 @@ def test_the_mask_loss_teaches_the_gaussians_opacity_from_the_masks(make_config,
     from hydra.utils import instantiate
 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    model = instantiate(make_config(*QUICK, "model.mask_loss=0.5").model)
+    model = instantiate(make_config(*QUICK, "model.loss.mask_loss=0.5").model)
     model.log = lambda *args, **kwargs: None
     mask = torch.zeros(32, 32, dtype=torch.bool)
     mask[8:24, 8:24] = True
@@ -299,12 +299,12 @@ def test_the_mask_loss_teaches_the_gaussians_opacity_from_the_masks(make_config,
     accumulation = torch.full((32, 32), 0.5, requires_grad=True)
     model.draw = lambda K, c2w, height, width, background=None, depth=True: (
         {"rgb": torch.zeros(32, 32, 3, requires_grad=True), "accumulation": accumulation}, SimpleNamespace(means2d=torch.zeros(1, 2)))
-    model.photometric_loss = lambda rgb, image, mask: ((rgb - image).abs().mean(), None)
+    model.loss = dataclasses.replace(model.loss, ssim_weight=0.0)  # the L1 alone
     loss = model.training_step({"image": image, "K": None, "c2w": None, "object_mask": mask}, 0)
     assert float(loss) == pytest.approx(0.5 * math.log(2.0), rel=1e-4)  # the colours match: all of it is the masks'
     loss.backward()
     assert (accumulation.grad[mask] < 0).all() and (accumulation.grad[~mask] > 0).all()  # opaque on the object, clear off it
-    with pytest.raises(ValueError, match="model.mask_loss > 0 needs the object's masks .* data.masks=background"):
+    with pytest.raises(ValueError, match="model.loss.mask_loss > 0 needs the object's masks .* data.masks=background"):
         model.training_step({"image": image, "K": None, "c2w": None}, 0)
 
 

@@ -27,7 +27,7 @@ from nerf_lightning.splats.sh import rgb_to_sh
 from nerf_lightning.training import train
 
 QUICK = ["experiment=splat_procedural", "data.scene.size=32", "trainer.enable_progress_bar=false",
-         "model.random_count=3000", "data.val_views=2"]
+         "model.start.random.count=3000", "data.val_views=2"]
 # gsplat's rates, the colours' ten times faster: the tiny scene below learns its colours in a few hundred steps
 RATES = dict(means=1.6e-4, log_scales=5e-3, quats=1e-3, opacity_logits=5e-2, sh0=2.5e-2, shN=1.25e-4)
 SIZE = 32

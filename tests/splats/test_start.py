@@ -53,3 +53,15 @@ def test_masks_that_do_not_agree_with_the_poses_are_refused_in_one_line():
     views.masks[1::2] = torch.flip(views.masks[1::2], dims=[2])  # and every other view's right half: nothing left in common
     with pytest.raises(ValueError, match="the masks and the poses do not agree"):
         points_in_visual_hull(views, 0.5, 6.0, 500, torch.Generator().manual_seed(0))
+
+
+def test_nothing_below_the_models_reads_the_formats_or_the_capture_tools():
+    """The start's geometry takes the views it is given; which start, from which scene, the models choose
+    (models/splat_start.py): no module of the layers below the models imports data/ or capture/."""
+    from tests.test_layers import graph
+
+    below = ("geometry", "fields", "rendering", "splats", "parameters")
+    reads = [f"{module} imports {target}" for module, targets in graph().items()
+             if module.split(".")[1:2] and module.split(".")[1] in below
+             for target in sorted(targets) if target.split(".")[1:2] and target.split(".")[1] in ("data", "capture")]
+    assert not reads, "\n".join(reads)

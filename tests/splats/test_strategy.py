@@ -13,7 +13,8 @@ import torch
 from nerf_lightning.parameters.groups import replace_parameter
 from nerf_lightning.splats.gaussians import PARAMETERS
 from nerf_lightning.splats.projection import Projection, views_seeing
-from nerf_lightning.splats.strategy import DefaultStrategy, MCMCStrategy, relocation
+from nerf_lightning.splats.mcmc import MCMCStrategy, relocation
+from nerf_lightning.splats.strategy import DefaultStrategy
 from nerf_lightning.training import train
 from tests.models.test_splat import QUICK, gaussians_for
 

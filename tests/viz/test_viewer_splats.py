@@ -15,7 +15,7 @@ import torch
 from nerf_lightning.geometry.space import SceneSpace
 from tests.viz.conftest import free_port, needs_browser, open_page, wait_for
 
-QUICK = ["experiment=splat_procedural", "data.scene.size=32", "model.random_count=3000"]
+QUICK = ["experiment=splat_procedural", "data.scene.size=32", "model.start.random.count=3000"]
 VIEW = 3  # the training camera the Gaussians are placed in front of
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nerf_lightning.capture.choices import CAMERA_MODELS, CAMERA_PARAMETERS, COLMAP_EXTRA, MAPPERS, MATCHERS  # noqa: F401 (also read from here)
+from nerf_lightning.capture.choices import COLMAP_EXTRA, MATCHERS
 from nerf_lightning.capture.images import exif_focal_length, natural_key
 from nerf_lightning.capture.retrieval import retrieved_pairs
 from nerf_lightning.errors import MissingExtraError

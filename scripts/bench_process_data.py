@@ -61,10 +61,8 @@ from nerf_lightning.io import write_json
 def mappers_over_seeds(images: Path, reference: Path, seeds: list[int], work: Path, max_size: int) -> list[dict]:
     """For each seed: the matches verified with that RANSAC seed, then each mapper, compared with ``reference``."""
     from nerf_lightning.capture import compare_with_reference
-    from nerf_lightning.capture.colmap import (
-        colmap_log, exhaustive_pairs, extract_features, map_images, match_features, reconstruction_to_transforms,
-        verified_matches_explained,
-    )
+    from nerf_lightning.capture.colmap import colmap_log, exhaustive_pairs, extract_features, match_features
+    from nerf_lightning.capture.reconstruction import map_images, reconstruction_to_transforms, verified_matches_explained
 
     names = sorted(path.name for path in images.iterdir())
     results = []

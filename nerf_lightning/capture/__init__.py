@@ -11,13 +11,14 @@ from typing import TYPE_CHECKING
 
 from nerf_lightning.lazy import lazy_attributes
 
-_HOMES = {"compare_with_reference": "compare", "format_report": "process", "process_capture": "process"}
+_HOMES = {"compare_with_reference": "compare", "format_report": "report", "process_capture": "process"}
 
 __all__ = sorted(_HOMES)
 
 if TYPE_CHECKING:
     from nerf_lightning.capture.compare import compare_with_reference
-    from nerf_lightning.capture.process import format_report, process_capture
+    from nerf_lightning.capture.process import process_capture
+    from nerf_lightning.capture.report import format_report
 
 
 __getattr__ = lazy_attributes(__name__, _HOMES)

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from nerf_lightning.capture.colmap import camera_from_world, import_pycolmap, verified_pairs
+from nerf_lightning.capture.colmap import import_pycolmap, verified_pairs
+from nerf_lightning.capture.reconstruction import camera_from_world
 
 # a pair holds two photos together when it has at least this many verified inlier matches (COLMAP's own floor is 15)
 STRONG_PAIR = 30

@@ -64,7 +64,7 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
     median, and the photos under :data:`VIEW_BELOW`.
 
     Args:
-        transforms: what :func:`~nerf_lightning.capture.colmap.reconstruction_to_transforms` wrote: frames with
+        transforms: what :func:`~nerf_lightning.capture.reconstruction.reconstruction_to_transforms` wrote: frames with
             ``transform_matrix`` (OpenGL) and ``mask_path``, the intrinsics (``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``,
             ``h``) shared at the top or a frame's own.
         points: (P, 3) the model's sparse points in its world.

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from nerf_lightning.capture.colmap import (chunks, colmap_log, database_statistics, exhaustive_pairs, extract_features, import_pycolmap,
-                                           match_features, model_statistics, sparse_points)
+                                           match_features)
+from nerf_lightning.capture.reconstruction import model_statistics, sparse_points
 from nerf_lightning.capture.retrieval import nearest_pairs
 from nerf_lightning.data.formats.shared import default_cache
 from nerf_lightning.data.points import SparsePoints
@@ -115,7 +116,7 @@ def triangulate_views(views: Views, *, masks: bool = True, max_features: int = 8
     the points in the views' world with their colours, and what each stage took and left: ``seconds`` (features,
     matching, triangulation), ``matches`` (:func:`~nerf_lightning.capture.colmap.database_statistics`), the views
     in a verified pair (``views_matched``) and the model's statistics
-    (:func:`~nerf_lightning.capture.colmap.model_statistics`).
+    (:func:`~nerf_lightning.capture.reconstruction.model_statistics`).
 
     Args:
         masks: keep each view's features inside its mask, where the views have masks.

@@ -129,7 +129,7 @@ def test_photos_that_do_not_register_fail_in_one_line_with_exit_2(tmp_path):
 
 
 def test_too_few_registered_name_the_images_left_out_and_what_to_change():
-    from nerf_lightning.capture.process import check_registered
+    from nerf_lightning.capture.refusals import check_registered
 
     names = [f"IMG_{index}.jpg" for index in range(10)]
     with pytest.raises(ValueError, match=r"registered only 2 of the 10 .*IMG_0\.jpg, IMG_1\.jpg"):
@@ -169,7 +169,7 @@ def test_the_sharpest_frame_of_each_stretch_of_a_video_is_written(tmp_path):
     pytest.importorskip("imageio_ffmpeg", reason="imageio-ffmpeg (the video extra) is not installed")
     import imageio.v3 as iio
 
-    from nerf_lightning.capture.process import write_video_frames
+    from nerf_lightning.capture.intake import write_video_frames
     from nerf_lightning.capture.video import laplacian_variance
 
     generator = np.random.default_rng(0)

@@ -78,7 +78,7 @@ def stage(photos: Path, masks: Path, staging: Path, mask_object: str = "white", 
     """photos and masks written into ``staging`` as process_capture writes them: the images' sizes and the masks'
     object fractions, by image name."""
     from nerf_lightning.capture.images import find_images
-    from nerf_lightning.capture.process import write_masks, write_photos
+    from nerf_lightning.capture.intake import write_masks, write_photos
 
     paths = find_images(photos)
     sizes = write_photos(paths, staging, downscales, progress=False)
@@ -209,7 +209,7 @@ def test_masks_are_written_full_size_and_lined_up_with_the_smaller_images(tmp_pa
 
 
 def test_masks_are_turned_upright_by_their_exif_orientation_as_the_photos_are(tmp_path):
-    from nerf_lightning.capture.process import write_masks, write_photos
+    from nerf_lightning.capture.intake import write_masks, write_photos
 
     stored = np.zeros((40, 80), bool)  # 80 wide, 40 high as stored; the object at the stored top left
     stored[:10, :20] = True
@@ -266,7 +266,7 @@ def synthetic_model(names: list[str], size: tuple[int, int]):
 
 @needs_pycolmap
 def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_path, monkeypatch):
-    import nerf_lightning.capture.process as process
+    import nerf_lightning.capture.posing as posing
     from nerf_lightning.capture import format_report, process_capture
 
     photos = object_photos(tmp_path / "photos", count=4)
@@ -280,8 +280,8 @@ def test_transforms_frames_name_their_masks_and_a_later_run_replaces_them(tmp_pa
                    "matches": MATCHES, "focal_priors": [], "other_model": None}
         return synthetic_model(list(names), SIZE), {"features": 0.0, "matching": 0.0, "mapping": 0.0}, mapping
 
-    monkeypatch.setattr(process, "reconstruct", reconstruct)
-    monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
+    monkeypatch.setattr(posing, "reconstruct", reconstruct)
+    monkeypatch.setattr(posing, "pose_checks", lambda *_: dict(NOTHING_FOUND))
     output = tmp_path / "out"
     # the stand-in model's poses are not the photos': the masks' check against them is taken off, and with it the
     # second posing it would ask for (tests/capture/test_silhouettes.py, and the escalation tests below)
@@ -397,7 +397,7 @@ def masks_agree(*_, **__):
 @needs_pycolmap
 @pytest.mark.parametrize("escalate", [True, False])
 def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_and_says_so(tmp_path, monkeypatch, escalate, caplog):
-    import nerf_lightning.capture.process as process
+    import nerf_lightning.capture.posing as posing
     from nerf_lightning.capture import format_report, process_capture
 
     photos = object_photos(tmp_path / "photos", count=6)
@@ -405,10 +405,10 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
     calls = []
 
     # 3 of 6 registered, then (stronger) 6 of 6
-    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct(calls, lambda names, options: list(names) if options.get("strong")
+    monkeypatch.setattr(posing, "reconstruct", stand_in_reconstruct(calls, lambda names, options: list(names) if options.get("strong")
                                                                      else list(names)[:3], mapper="incremental"))
-    monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
-    monkeypatch.setattr(process, "silhouette_agreement", masks_agree)  # so that the count alone decides
+    monkeypatch.setattr(posing, "pose_checks", lambda *_: dict(NOTHING_FOUND))
+    monkeypatch.setattr(posing, "silhouette_agreement", masks_agree)  # so that the count alone decides
     report = process_capture(photos, tmp_path / "out", masks=masks, max_size=1600, max_features=8192, min_registered=0.4, min_mask_agreement=0.0,
                              escalate=escalate, progress=False)
     if not escalate:
@@ -430,16 +430,16 @@ def test_a_capture_that_registers_too_few_is_posed_again_with_stronger_settings_
 @needs_pycolmap
 @pytest.mark.parametrize("check_poses", [True, False])
 def test_photos_posed_on_almost_no_points_are_left_out_named_and_counted_against_the_floor(tmp_path, monkeypatch, caplog, check_poses):
-    import nerf_lightning.capture.process as process
+    import nerf_lightning.capture.posing as posing
     from nerf_lightning.capture import format_report, process_capture
 
     photos = object_photos(tmp_path / "photos", count=6)
     masks = save_masks(tmp_path / "masks", photos)
 
     thin = ["photo_1.png", "photo_4.png"]
-    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct([]))
-    monkeypatch.setattr(process, "pose_checks", lambda *_: {**NOTHING_FOUND, "thinly_posed": thin, "warn": ["2 of the 6 posed photos ..."]})
-    monkeypatch.setattr(process, "silhouette_agreement", masks_agree)
+    monkeypatch.setattr(posing, "reconstruct", stand_in_reconstruct([]))
+    monkeypatch.setattr(posing, "pose_checks", lambda *_: {**NOTHING_FOUND, "thinly_posed": thin, "warn": ["2 of the 6 posed photos ..."]})
+    monkeypatch.setattr(posing, "silhouette_agreement", masks_agree)
     report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.0, escalate=False, progress=False,
                              check_poses=check_poses)
     frames = [frame["file_path"] for frame in json.loads((tmp_path / "out" / "transforms.json").read_text())["frames"]]
@@ -460,7 +460,7 @@ def test_photos_posed_on_almost_no_points_are_left_out_named_and_counted_against
 @needs_pycolmap
 @pytest.mark.parametrize("second_refused", [False, True])
 def test_a_model_the_pose_checks_refuse_is_posed_again_and_never_kept_over_one_they_pass(tmp_path, monkeypatch, caplog, second_refused):
-    import nerf_lightning.capture.process as process
+    import nerf_lightning.capture.posing as posing
     from nerf_lightning.capture import process_capture
 
     photos = object_photos(tmp_path / "photos", count=6)
@@ -470,9 +470,9 @@ def test_a_model_the_pose_checks_refuse_is_posed_again_and_never_kept_over_one_t
     wrong = {**NOTHING_FOUND, "camera_spread": 48.0, "refuse": ["the posed cameras lie 48 times farther apart than they are from what "
                                                                 "they see; so the photos are strung together in the wrong places"]}
     found = [wrong, wrong if second_refused else dict(NOTHING_FOUND)]
-    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct(calls))  # every photo registers both times
-    monkeypatch.setattr(process, "pose_checks", lambda *_: found.pop(0))
-    monkeypatch.setattr(process, "silhouette_agreement", masks_agree)
+    monkeypatch.setattr(posing, "reconstruct", stand_in_reconstruct(calls))  # every photo registers both times
+    monkeypatch.setattr(posing, "pose_checks", lambda *_: found.pop(0))
+    monkeypatch.setattr(posing, "silhouette_agreement", masks_agree)
     if second_refused:
         with pytest.raises(ValueError, match="COLMAP registered 6 images of .*, but its model is wrong: the posed cameras lie 48 times"):
             process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.0, progress=False)
@@ -485,14 +485,14 @@ def test_a_model_the_pose_checks_refuse_is_posed_again_and_never_kept_over_one_t
 
 
 def test_the_stronger_pass_matches_every_pair_of_few_photos_and_the_pairs_that_can_overlap_of_many():
-    from nerf_lightning.capture.process import stronger_matcher
+    from nerf_lightning.capture.posing import stronger_matcher
 
     assert stronger_matcher(6) == stronger_matcher(25) == "exhaustive"  # 300 pairs
     assert stronger_matcher(26) == stronger_matcher(66) == "overlapping"  # 325 and 2,145 pairs
 
 
 def test_the_model_kept_is_the_one_with_more_photos_posed_weighted_by_the_masks_agreement():
-    from nerf_lightning.capture.process import model_score
+    from nerf_lightning.capture.posing import model_score
 
     def agreeing(value):
         return {"median_coverage": value}
@@ -514,7 +514,7 @@ def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_k
     # every photo registers each time, but the masks' agreement with the first model's poses says it is wrong in part
     # (as on moldGoldCape's darkened photos): under ESCALATE_AGREEMENT it is posed again, and the model whose masks
     # agree more is kept
-    import nerf_lightning.capture.process as process
+    import nerf_lightning.capture.posing as posing
     from nerf_lightning.capture import format_report, process_capture
 
     photos = object_photos(tmp_path / "photos", count=6)
@@ -524,9 +524,9 @@ def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_k
     def silhouette_agreement(transforms, points, staging, downscales, seed=0):
         return {"median_coverage": left.pop(0), "views_below": [], "coverage": {}, "masks_read": "masks"}
 
-    monkeypatch.setattr(process, "reconstruct", stand_in_reconstruct(calls))
-    monkeypatch.setattr(process, "pose_checks", lambda *_: dict(NOTHING_FOUND))
-    monkeypatch.setattr(process, "silhouette_agreement", silhouette_agreement)
+    monkeypatch.setattr(posing, "reconstruct", stand_in_reconstruct(calls))
+    monkeypatch.setattr(posing, "pose_checks", lambda *_: dict(NOTHING_FOUND))
+    monkeypatch.setattr(posing, "silhouette_agreement", silhouette_agreement)
     report = process_capture(photos, tmp_path / "out", masks=masks, min_mask_agreement=0.4, progress=False)
     assert left == [] and report["registered"] == 6
     if kept is None:
@@ -541,7 +541,7 @@ def test_a_model_the_masks_agree_with_too_little_is_posed_again_and_the_better_k
 
 
 def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_the_photos():
-    from nerf_lightning.capture.process import escalated_settings
+    from nerf_lightning.capture.posing import escalated_settings
 
     assert escalated_settings(1600, 8192, {"a": (4000, 4000)}) == {"max_size": 3200, "max_features": 8192, "strong": True}
     assert escalated_settings(1600, 8192, {"a": (2400, 1800)})["max_size"] == 2400
@@ -557,7 +557,7 @@ def test_stronger_settings_read_features_at_up_to_twice_max_size_but_not_past_th
     (None, ""),  # a report written before the photos' side was kept: the presets' own downscale
 ])
 def test_next_commands_size_a_masked_capture_for_the_object_presets(side, expected):
-    from nerf_lightning.capture.process import next_commands
+    from nerf_lightning.capture.report import next_commands
 
     report = {"output": "out", "masks": {"count": 3}, **({"photo_side": side} if side else {})}
     assert next_commands(report) == [

@@ -11,7 +11,7 @@ import pytest
 import torch
 from PIL import Image
 
-from nerf_lightning.capture.process import check_silhouettes
+from nerf_lightning.capture.refusals import check_silhouettes
 from nerf_lightning.capture.silhouettes import silhouette_agreement
 from nerf_lightning.data.formats.turntable import OBJECT_BOUNDS, load_turntable
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerf_lightning.capture.process import write_points_ply
+from nerf_lightning.capture.output import write_points_ply
 from nerf_lightning.data.formats import load_llff, load_transforms
 from nerf_lightning.data.points import read_colmap_points
 from nerf_lightning.geometry import pinhole_camera

@@ -198,7 +198,7 @@ def test_a_capture_with_sparse_points_starts_its_gaussians_there_and_trains(proc
 
     from hydra.utils import instantiate
 
-    from nerf_lightning.capture.process import write_points_ply
+    from nerf_lightning.capture.output import write_points_ply
     from nerf_lightning.data.formats import load_transforms
     from nerf_lightning.splats.sh import SH_C0
     from tests.data.test_points import surface_points

@@ -163,19 +163,9 @@ def read_masks(root: Path, files: list[Path], downscale: int, size: tuple[int, i
                         recipe={"loader": "llff-masks", "size": list(size)})
 
 
-def load_llff(
-    root: str | Path,
-    downscale: int = 8,
-    holdout_every: int = 8,
-    bd_factor: float | None = 0.75,
-    recentre: bool = True,
-    near: float | None = None,
-    far: float | None = None,
-    render_frames: int = 120,
-    max_views: int | None = None,
-    image_cache: str | None = None,
-    layout: str = "forward",
-) -> Scene:
+def load_llff(root: str | Path, downscale: int = 8, holdout_every: int = 8, bd_factor: float | None = 0.75, recentre: bool = True,
+              near: float | None = None, far: float | None = None, render_frames: int = 120, max_views: int | None = None,
+              image_cache: str | None = None, layout: str = "forward") -> Scene:
     """An LLFF capture.
 
     Args:
@@ -202,44 +192,14 @@ def load_llff(
     if not root.is_dir():
         raise FileNotFoundError(f"LLFF scene folder not found: {root}")
     c2w, hwf, bounds = read_poses_bounds(root / "poses_bounds.npy")
-    folder = root / "images" if downscale == 1 else downscaled_folder(root, downscale)
-    if not folder.is_dir():
-        available = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("images"))
-        raise FileNotFoundError(f"{folder} not found: data.scene.downscale={downscale} reads it; {root} has {available or 'no image folders'}")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if len(files) != len(c2w):
-        raise ValueError(f"{folder} has {len(files)} images but {root / 'poses_bounds.npy'} has {len(c2w)} poses: expected one image a pose")
-    count = len(files)
-    held = list(range(0, count, holdout_every)) if holdout_every else []
-    train = [i for i in range(count) if i not in held]
-    if max_views:
-        train = [train[i] for i in evenly_spaced(len(train), max_views)]
-    order, rows = stacking_order({"train": train, "val": held} if held else {"train": train})
+    folder, files = image_files(root, downscale, len(c2w))
+    held, order, rows = view_splits(len(files), holdout_every, max_views)
     images = stack_images([files[i] for i in order], load_image, cache=image_cache, label=f"{root.name}-{folder.name}", recipe={"loader": "llff"})
     height, width = images.shape[1:3]
     masks = read_masks(root, [files[i] for i in order], downscale, (height, width), image_cache)
-    full_height, full_width, full_focal = hwf[0]
-    scale_x, scale_y = full_width / width, full_height / height
-    if abs(scale_x - scale_y) > 0.02 * scale_x:
-        raise ValueError(f"{folder}: images of {width}x{height} are not a uniform downscale of the poses' {full_width:.0f}x{full_height:.0f}")
-    focal = full_focal / scale_x
-
-    world_from_capture = np.eye(4)  # the similarity below, kept with the scene to map results back
-    if layout == "360":
-        similarity = normalising_transform(torch.from_numpy(_homogeneous(c2w)), "focus")
-        c2w = apply_similarity(similarity, torch.from_numpy(_homogeneous(c2w))).numpy()[:, :3]
-        scale = float(similarity[:3, :3].det().abs() ** (1.0 / 3.0))
-        bounds, world_from_capture = bounds * scale, similarity.numpy()
-        near = 0.05 if near is None else near
-    elif bd_factor is not None:
-        scale = 1.0 / (bounds.min() * bd_factor)
-        c2w[:, :3, 3] *= scale
-        bounds = bounds * scale
-        world_from_capture = np.diag([scale, scale, scale, 1.0])
-    if recentre and layout == "forward":
-        recentring = np.linalg.inv(_homogeneous(average_pose(c2w)))
-        c2w = (recentring @ _homogeneous(c2w))[:, :3]
-        world_from_capture = recentring @ world_from_capture
+    focal = scaled_focal(folder, hwf[0], width, height)
+    c2w, bounds, world_from_capture = capture_world(c2w, bounds, layout, bd_factor, recentre)
+    near = (0.05 if layout == "360" else float(bounds.min() * 0.9)) if near is None else near
     spiral = llff_spiral(c2w, bounds, render_frames) if layout == "forward" else None
 
     def to_opencv(matrices: np.ndarray, source: str) -> torch.Tensor:
@@ -254,8 +214,67 @@ def load_llff(
         splits["test"] = splits["val"]
     if spiral is not None:  # a 360 capture gets the orbit of the other 360 captures
         splits["spiral"] = Views(K=K.expand(len(spiral), 3, 3).clone(), c2w=to_opencv(spiral, "the LLFF spiral"), height=height, width=width)
-    near = float(bounds.min() * 0.9) if near is None else near
     far = float(bounds.max()) * (1.0 if layout == "forward" else 1.5) if far is None else far
     points = read_colmap_points(root / "sparse" / "0", torch.from_numpy(world_from_capture))
     return Scene(splits=splits, near=near, far=far, background=torch.zeros(3), source=str(root),
                  world_from_capture=torch.from_numpy(world_from_capture).float(), points=points)
+
+
+def image_files(root: Path, downscale: int, poses: int) -> tuple[Path, list[Path]]:
+    """The folder of the images ``downscale`` reads (``images/`` for 1, else ``images_<k>/``, written where only
+    ``images/`` is there: :func:`downscaled_folder`) and its images, sorted by name. FileNotFoundError naming the
+    image folders the capture has where that one is missing; ValueError where its images are not one a pose of the
+    ``poses``."""
+    folder = root / "images" if downscale == 1 else downscaled_folder(root, downscale)
+    if not folder.is_dir():
+        available = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("images"))
+        raise FileNotFoundError(f"{folder} not found: data.scene.downscale={downscale} reads it; {root} has {available or 'no image folders'}")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if len(files) != poses:
+        raise ValueError(f"{folder} has {len(files)} images but {root / 'poses_bounds.npy'} has {poses} poses: expected one image a pose")
+    return folder, files
+
+
+def view_splits(count: int, holdout_every: int, max_views: int | None) -> tuple[list[int], list[int], dict[str, list[int]]]:
+    """Of ``count`` views, the held-out ones (every ``holdout_every``-th, NeRF's ``llffhold``), and the order they
+    are stacked in with each split's rows (:func:`~nerf_lightning.data.scene.stacking_order` of the training views,
+    thinned to ``max_views``, and the held-out ones as ``val``)."""
+    held = list(range(0, count, holdout_every)) if holdout_every else []
+    train = [i for i in range(count) if i not in held]
+    if max_views:
+        train = [train[i] for i in evenly_spaced(len(train), max_views)]
+    order, rows = stacking_order({"train": train, "val": held} if held else {"train": train})
+    return held, order, rows
+
+
+def scaled_focal(folder: Path, full_hwf: np.ndarray, width: int, height: int) -> float:
+    """The focal length of ``folder``'s ``width`` x ``height`` images, from the poses' full-size [H, W, focal];
+    ValueError where those images are not a uniform downscale of that size."""
+    full_height, full_width, full_focal = full_hwf
+    scale_x, scale_y = full_width / width, full_height / height
+    if abs(scale_x - scale_y) > 0.02 * scale_x:
+        raise ValueError(f"{folder}: images of {width}x{height} are not a uniform downscale of the poses' {full_width:.0f}x{full_height:.0f}")
+    return full_focal / scale_x
+
+
+def capture_world(c2w: np.ndarray, bounds: np.ndarray, layout: str, bd_factor: float | None, recentre: bool
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 3, 4) OpenGL cameras and (N, 2) bounds moved into the scene's world (see the module's docstring: a
+    ``360`` capture normalised as a transforms.json one; a forward-facing one scaled by ``bd_factor`` and, with
+    ``recentre``, moved to its average camera); and the (4, 4) similarity ``world_from_capture`` that does it."""
+    world_from_capture = np.eye(4)  # the similarity below, kept with the scene to map results back
+    if layout == "360":
+        similarity = normalising_transform(torch.from_numpy(_homogeneous(c2w)), "focus")
+        c2w = apply_similarity(similarity, torch.from_numpy(_homogeneous(c2w))).numpy()[:, :3]
+        scale = float(similarity[:3, :3].det().abs() ** (1.0 / 3.0))
+        bounds, world_from_capture = bounds * scale, similarity.numpy()
+    elif bd_factor is not None:
+        scale = 1.0 / (bounds.min() * bd_factor)
+        c2w[:, :3, 3] *= scale
+        bounds = bounds * scale
+        world_from_capture = np.diag([scale, scale, scale, 1.0])
+    if recentre and layout == "forward":
+        recentring = np.linalg.inv(_homogeneous(average_pose(c2w)))
+        c2w = (recentring @ _homogeneous(c2w))[:, :3]
+        world_from_capture = recentring @ world_from_capture
+    return c2w, bounds, world_from_capture

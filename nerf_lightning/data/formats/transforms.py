@@ -42,7 +42,7 @@ from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image, load_mask
 from nerf_lightning.data.formats.shared import CENTRES, apply_similarity, normalising_transform  # noqa: F401 (also read from here)
-from nerf_lightning.data.points import read_ply_points
+from nerf_lightning.data.points import SparsePoints, read_ply_points
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 
@@ -95,19 +95,9 @@ def undistort(image: torch.Tensor, K: torch.Tensor, distortion: torch.Tensor) ->
     return kornia.geometry.calibration.undistort_image(image.permute(2, 0, 1)[None], K[None], distortion[None])[0].permute(1, 2, 0)
 
 
-def load_transforms(
-    root: str | Path,
-    downscale: int = 1,
-    holdout_every: int = 8,
-    normalise: bool = True,
-    near: float = 0.05,
-    far: float | None = None,
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    max_views: int | None = None,
-    centre: str = "focus",
-    world_from_capture: torch.Tensor | list | None = None,
-    image_cache: str | None = None,
-) -> Scene:
+def load_transforms(root: str | Path, downscale: int = 1, holdout_every: int = 8, normalise: bool = True, near: float = 0.05,
+                    far: float | None = None, background: tuple[float, float, float] = (0.0, 0.0, 0.0), max_views: int | None = None,
+                    centre: str = "focus", world_from_capture: torch.Tensor | list | None = None, image_cache: str | None = None) -> Scene:
     """A ``transforms.json`` capture (instant-ngp or nerfstudio).
 
     Args:
@@ -126,6 +116,40 @@ def load_transforms(
         image_cache: a folder to memory-map the decoded images from (written on first use; see
             :mod:`~nerf_lightning.data.image_stack`); None keeps them in memory.
     """
+    path, meta = read_transforms_json(root)
+    present = frames_with_images(path, meta["frames"])
+    lenses, sizes = frame_lenses(path, meta, present, downscale)
+    c2w, world_from_capture = capture_world(path, present, normalise, centre, world_from_capture)
+    order, rows = stacking_order(frame_splits(path, meta, present, holdout_every, max_views))
+
+    def decode(image_path: Path) -> torch.Tensor:
+        return undistort(downscale_image(load_image(image_path, background=background), downscale), *lenses[image_path])
+
+    image_paths = [present[index][2] for index in order]
+    images = stack_images(image_paths, decode, cache=image_cache, label=path.parent.name,
+                          recipe={"loader": "transforms", "downscale": downscale, "background": list(background)}, depends_on=[path])
+    masks = _masks(path, [present[index] for index in order], sizes, lenses, downscale, image_cache)
+    K = torch.stack([lenses[image_path][0] for image_path in image_paths])
+    views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images, masks=masks,
+                  names=[image_path.name for image_path in image_paths])
+    aabb_scale = float(meta["aabb_scale"]) if "aabb_scale" in meta else None
+    if far is None:
+        far = 2.0 * math.sqrt(3.0) * aabb_scale if aabb_scale else 4.0
+    return Scene(
+        splits={name: views.subset(split_rows) for name, split_rows in rows.items()}, near=near, far=far,
+        background=torch.tensor(background, dtype=torch.float32), source=str(path),
+        world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale,
+        points=sparse_points(path, meta, world_from_capture),
+    )
+
+
+# a frame with an image: (its index among the json's frames, the frame's dict, its image's path)
+PresentFrame = tuple[int, dict, Path]
+
+
+def read_transforms_json(root: str | Path) -> tuple[Path, dict]:
+    """The path of the json ``root`` names (the file, or ``transforms.json`` in the folder) and what it holds, checked
+    to have a non-empty ``frames`` list. FileNotFoundError or ValueError naming the file."""
     path = Path(root).expanduser()
     if path.is_dir():
         path = path / "transforms.json"
@@ -138,7 +162,14 @@ def load_transforms(
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise ValueError(f"{path}: missing or empty 'frames' (expected a list of frames with file_path and transform_matrix)")
+    return path, meta
 
+
+def frames_with_images(path: Path, frames: list[dict]) -> list[PresentFrame]:
+    """The ``frames`` of the json at ``path`` whose image file is there, as (index, frame, image path); a
+    ``file_path`` without a suffix finds its ``.png``, ``.jpg`` or ``.jpeg``. The others are skipped with one warning
+    naming them; FileNotFoundError where none has its image, ValueError naming a frame without ``file_path`` or
+    ``transform_matrix``."""
     present, missing = [], []
     for index, frame in enumerate(frames):
         for key in ("file_path", "transform_matrix"):
@@ -153,14 +184,27 @@ def load_transforms(
         log.warning("%s: %d of %d frames have no image file and are skipped: %s", path, len(missing), len(frames), names)
     if not present:
         raise FileNotFoundError(f"{path}: none of its {len(frames)} frames has an image file (first: {frames[0]['file_path']})")
+    return present
 
-    lenses, sizes = {}, {}  # image path -> K, distortion and full (height, width); from the images' headers, before anything is decoded
+
+def frame_lenses(path: Path, meta: dict, present: list[PresentFrame], downscale: int
+                 ) -> tuple[dict[Path, tuple[torch.Tensor, torch.Tensor]], dict[Path, tuple[int, int]]]:
+    """Of each image path of ``present``: its (3, 3) K, scaled down by ``downscale``, and (5,) OpenCV distortion
+    (:func:`frame_intrinsics`); and its full (height, width). From the images' headers, before anything is decoded."""
+    lenses, sizes = {}, {}
     for number, frame, image_path in present:
         height, width = sizes[image_path] = image_size(image_path)
         K, distortion = frame_intrinsics(frame, meta, width, height, path, f"frame {number} ({frame['file_path']}): ")
         K[:2] /= downscale  # downscale first, then undistort the smaller image: the distortion is in normalised coordinates
         lenses[image_path] = (K, distortion)
+    return lenses, sizes
 
+
+def capture_world(path: Path, present: list[PresentFrame], normalise: bool, centre: str,
+                  world_from_capture: torch.Tensor | list | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The frames' cameras in the scene's world: (N, 4, 4) float32 OpenCV camera-to-world, and the (4, 4) float64
+    similarity ``world_from_capture`` that maps the json's coordinates there (the one given; else the normalising
+    one, :func:`~nerf_lightning.data.formats.shared.normalising_transform`, or the identity without ``normalise``)."""
     try:
         c2w = torch.tensor(np.asarray([frame["transform_matrix"] for _, frame, _ in present], dtype=np.float64))
     except ValueError as error:
@@ -174,8 +218,12 @@ def load_transforms(
         world_from_capture = normalising_transform(c2w, centre)
     else:
         world_from_capture = torch.eye(4, dtype=torch.float64)
-    c2w = opengl_to_opencv(apply_similarity(world_from_capture, c2w)).float()
+    return opengl_to_opencv(apply_similarity(world_from_capture, c2w)).float(), world_from_capture
 
+
+def frame_splits(path: Path, meta: dict, present: list[PresentFrame], holdout_every: int, max_views: int | None) -> dict[str, list[int]]:
+    """Indices into ``present`` of each split: the json's named splits (:func:`_named_splits`), else every
+    ``holdout_every``-th frame held out as val and test; the training split thinned to ``max_views``, evenly spaced."""
     splits = _named_splits(meta, path, [str(frame["file_path"]) for _, frame, _ in present])
     if splits is None:
         held = list(range(0, len(present), holdout_every)) if holdout_every else []
@@ -184,41 +232,28 @@ def load_transforms(
             splits["val"] = splits["test"] = held
     if max_views:
         splits["train"] = [splits["train"][i] for i in evenly_spaced(len(splits["train"]), max_views)]
-    order, rows = stacking_order(splits)
-
-    def decode(image_path: Path) -> torch.Tensor:
-        return undistort(downscale_image(load_image(image_path, background=background), downscale), *lenses[image_path])
-
-    image_paths = [present[index][2] for index in order]
-    images = stack_images(image_paths, decode, cache=image_cache, label=path.parent.name,
-                          recipe={"loader": "transforms", "downscale": downscale, "background": list(background)}, depends_on=[path])
-    masks = _masks(path, [present[index] for index in order], sizes, lenses, downscale, image_cache)
-    K = torch.stack([lenses[image_path][0] for image_path in image_paths])
-    views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images, masks=masks,
-                  names=[image_path.name for image_path in image_paths])
-    points = None
-    if meta.get("ply_file_path") is not None:
-        if not isinstance(meta["ply_file_path"], str):
-            raise ValueError(f"{path}: 'ply_file_path' must be a file name, got {meta['ply_file_path']!r}")
-        ply = path.parent / meta["ply_file_path"]
-        if ply.is_file():
-            try:
-                points = read_ply_points(ply, world_from_capture)
-            except ValueError as error:
-                raise ValueError(f"{path}: 'ply_file_path': {error}") from None
-        else:  # the views load without their sparse points: only a model that starts from them needs them
-            log.warning("%s: 'ply_file_path' names %s, which is not there: the scene has no sparse points", path, ply)
-    aabb_scale = float(meta["aabb_scale"]) if "aabb_scale" in meta else None
-    if far is None:
-        far = 2.0 * math.sqrt(3.0) * aabb_scale if aabb_scale else 4.0
-    return Scene(
-        splits={name: views.subset(split_rows) for name, split_rows in rows.items()}, near=near, far=far,
-        background=torch.tensor(background, dtype=torch.float32), source=str(path),
-        world_from_capture=world_from_capture.float(), aabb_scale=aabb_scale, points=points,
-    )
+    return splits
 
 
-def _masks(path: Path, frames: list[tuple[int, dict, Path]], sizes: dict[Path, tuple[int, int]],
+def sparse_points(path: Path, meta: dict, world_from_capture: torch.Tensor) -> SparsePoints | None:
+    """The capture's sparse points from the PLY its ``ply_file_path`` names, mapped by ``world_from_capture`` as the
+    cameras are (:func:`~nerf_lightning.data.points.read_ply_points`); None without one, or (with a warning) where the
+    file it names is not there."""
+    if meta.get("ply_file_path") is None:
+        return None
+    if not isinstance(meta["ply_file_path"], str):
+        raise ValueError(f"{path}: 'ply_file_path' must be a file name, got {meta['ply_file_path']!r}")
+    ply = path.parent / meta["ply_file_path"]
+    if not ply.is_file():  # the views load without their sparse points: only a model that starts from them needs them
+        log.warning("%s: 'ply_file_path' names %s, which is not there: the scene has no sparse points", path, ply)
+        return None
+    try:
+        return read_ply_points(ply, world_from_capture)
+    except ValueError as error:
+        raise ValueError(f"{path}: 'ply_file_path': {error}") from None
+
+
+def _masks(path: Path, frames: list[PresentFrame], sizes: dict[Path, tuple[int, int]],
            lenses: dict[Path, tuple[torch.Tensor, torch.Tensor]], downscale: int, image_cache: str | None) -> torch.Tensor | None:
     """(N, H, W) bool masks of ``frames`` ((number, frame, image path), in the views' order) from their ``mask_path``,
     downscaled and undistorted as their images; None where no frame has one. ValueError naming the frames without one

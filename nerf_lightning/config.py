@@ -31,6 +31,7 @@ OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path))
 OBJECTS_02 = "in nerf-lightning 0.2, when samplers and the scene space became objects"
 VIEWER_03 = "in nerf-lightning 0.3, when the live viewer became a callback"
 MODES_04 = "after nerf-lightning 0.3, when the renderer's two modes became two renderers"
+RASTERIZER_04 = "in nerf-lightning 0.4, when what draws a splat model's views became one object, model/rasterizer"
 
 # Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
@@ -47,6 +48,8 @@ RENAMED_KEYS = {
     **{f"model.field.{key}": (f"model.field.encoding.{key}", "", OBJECTS_02)
        for key in ("n_levels", "features_per_level", "log2_table_size", "base_resolution", "max_resolution")},
     **{f"viewer_{key}": (f"callbacks.viewer.{key}", "with viewer=live", VIEWER_03) for key in ("host", "port", "time_share")},
+    "model.max_pairs": ("model.rasterizer.max_pairs", "", RASTERIZER_04),
+    "model.antialiased": ("model.rasterizer.antialiased", "", RASTERIZER_04),
 }
 
 
@@ -65,6 +68,9 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
         if key == "model/renderer" and value.strip() == "volume":
             return (f"'model/renderer=volume' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=rounds "
                     "(its keys are the same), or model/renderer=table for a step of fixed shapes")
+        if key == "model.rasterizer" and value.strip() in ("auto", "tiles", "pairs"):
+            # the name of a group's choice, where a value was written before (model.rasterizer.* are its keys now)
+            return f"'{override}' was replaced {RASTERIZER_04} (see CHANGELOG.md): use model/rasterizer={value.strip()}"
         for old, (new, note, why) in RENAMED_KEYS.items():
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")

@@ -1,7 +1,7 @@
 """Fitting 3D Gaussians to posed images (3D Gaussian splatting, Kerbl et al. 2023), in plain PyTorch.
 
 Each step draws one training view (or a patch: ``data=views``), projects the Gaussians into its camera
-(:mod:`~nerf_lightning.splats.projection`), rasterises them (:mod:`~nerf_lightning.splats.rasterize`) and takes
+(:mod:`~nerf_lightning.splats.projection`), rasterises them (:mod:`~nerf_lightning.splats.draw`) and takes
 0.8 L1 + 0.2 (1 - SSIM) against the photo; a strategy (:mod:`~nerf_lightning.splats.strategy`) grows and prunes
 the Gaussians from the screen-space gradients.
 """
@@ -32,11 +32,9 @@ from nerf_lightning.parameters.exposure import ViewExposure
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
-from nerf_lightning.splats.loss import photometric_loss
-from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
-from nerf_lightning.splats.rasterize import MAX_PAIRS
-from nerf_lightning.splats.rasterizers import AUTO, TILES, check_rasterizer, choose_rasterizer, device_for_splats, rasterize_view
-from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
+from nerf_lightning.splats.draw import Rasterizer, TileRasterizer, ViewDrawer, device_for_splats
+from nerf_lightning.splats.projection import Projection, pixel_ray_lengths
+from nerf_lightning.splats.sh import coefficients_for
 from nerf_lightning.splats.start import points_in_visual_hull, points_seen_by_views
 from nerf_lightning.splats.strategy import Strategy
 
@@ -71,11 +69,10 @@ class SplatModule(SceneModule):
         sh_degree_interval: the colours' spherical-harmonic degree goes up by one every so many steps, to the
             Gaussians' ``sh_degree``.
         ssim_weight: the loss is (1 - w) L1 + w (1 - SSIM).
-        antialiased: Mip-Splatting's opacity compensation of the low-pass filter.
-        rasterizer: which rasteriser draws (:mod:`~nerf_lightning.splats.rasterizers`): ``auto`` (numba tiles on a
-            CPU, plain PyTorch on a GPU), ``tiles`` or ``pairs`` (plain PyTorch everywhere).
-        max_pairs: (Gaussian, pixel) pairs drawn at once by the ``pairs`` rasteriser
-            (:mod:`~nerf_lightning.splats.rasterize`): the memory a view takes, about 100 bytes a pair with gradients.
+        rasterizer: what draws a view (:mod:`~nerf_lightning.splats.draw`, ``model/rasterizer``): the tile
+            rasteriser of the device (:class:`~nerf_lightning.splats.draw.TileRasterizer`, None: that one) or plain
+            PyTorch's pairs (:class:`~nerf_lightning.splats.draw.PairsRasterizer`), with the pairs' memory budget
+            (``max_pairs``) and Mip-Splatting's opacity compensation of the low-pass filter (``antialiased``).
         random_count, random_start, random_near, random_extent: the random start of a capture without sparse points.
         random_scale: the random start's Gaussians' scale, a multiple of their 3 nearest neighbours' mean distance
             (None: ``gaussians.initial_scale``, which sparse points start at): a random cloud is denser than its
@@ -111,8 +108,8 @@ class SplatModule(SceneModule):
 
     def __init__(self, gaussians: Gaussians, optimizer: Callable[..., torch.optim.Optimizer], learning_rates: dict[str, float],
                  strategy: Strategy | None = None, scheduler: Callable[..., Any] | None = None, steps: int = 30_000,
-                 means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2, antialiased: bool = False,
-                 rasterizer: str = AUTO, max_pairs: int = MAX_PAIRS, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
+                 means_final_ratio: float = 0.01, sh_degree_interval: int = 1000, ssim_weight: float = 0.2,
+                 rasterizer: Rasterizer | None = None, random_count: int = 100_000, random_start: str = "box", random_near: float | None = None,
                  random_extent: float = 1.3, random_scale: float | None = None, triangulate: bool = False,
                  random_beside_points: int = 0, appearance: ViewColourAffine | ViewExposure | None = None, camera_refinement: CameraRefinement | None = None,
                  train_background: str = "scene", mask_loss: float = 0.0) -> None:
@@ -126,9 +123,8 @@ class SplatModule(SceneModule):
         self.gaussians, self.strategy = gaussians, strategy
         self.learning_rates = dict(learning_rates)
         self.steps, self.means_final_ratio, self.sh_degree_interval = steps, means_final_ratio, sh_degree_interval
-        self.ssim_weight, self.antialiased, self.max_pairs = ssim_weight, antialiased, max_pairs
-        check_rasterizer(rasterizer)  # a wrong name refused now, not at the first view
-        self.rasterizer = rasterizer
+        self.ssim_weight = ssim_weight
+        self.rasterizer = TileRasterizer() if rasterizer is None else rasterizer
         if random_start not in ("box", "views"):
             raise ValueError(f"model.random_start must be 'box' or 'views', got {random_start!r}")
         self.random_count, self.random_start, self.random_near, self.random_extent = random_count, random_start, random_near, random_extent
@@ -298,47 +294,27 @@ class SplatModule(SceneModule):
     @staticmethod
     def device_for(device: torch.device | str, asked: bool) -> torch.device:
         """Where this model trains and draws when ``device`` was chosen (``asked``: by name, not ``auto``): the CPU's
-        tiles in place of an Apple GPU not asked for (:func:`~nerf_lightning.splats.rasterizers.device_for_splats`)."""
+        tiles in place of an Apple GPU not asked for (:func:`~nerf_lightning.splats.draw.device_for_splats`)."""
         return device_for_splats(device, asked)
 
-    def numba_draws(self) -> bool:
-        """Whether numba's loops draw on this model's device (``model.rasterizer``'s choice: ``tiles`` on a CPU): then
-        the projection and colours, and the training loss, take their fused numba paths too."""
-        return choose_rasterizer(self.device.type, self.rasterizer) == TILES
+    def drawer(self) -> ViewDrawer:
+        """What draws a view on this model's device (``model.rasterizer``'s choice there): the projection and colours,
+        the rasteriser, and the training loss that goes with them."""
+        return self.rasterizer.for_device(self.device.type)
 
     def draw(self, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
              background: torch.Tensor | None = None, depth: bool = True) -> tuple[dict[str, torch.Tensor], Projection]:
         """K (3, 3), OpenCV c2w (4, 4) -> rgb (H, W, 3), depth (H, W) (distance along the pixels' unit rays, as the
         NeRF renderers measure it; left out without ``depth``: a training step does not read it), accumulation
         (H, W), and the :class:`Projection` (for the strategy)."""
-        g = self.gaussians
         K, c2w = K.to(self.device, torch.float32), c2w.to(self.device, torch.float32)
-        degree = self.sh_degree()
-        learned_camera = torch.is_grad_enabled() and c2w.requires_grad  # camera refinement: the reference's autograd
-        if not learned_camera and self.numba_draws():
-            # projection and colour in one numba loop, forward and backward, held equal to the two PyTorch steps
-            # below; where tiles draw, numba is there
-            from nerf_lightning.splats.projection_fast import project_and_shade
-
-            with record_function("splats.project_and_shade"):
-                projection, colours = project_and_shade(g.means, g.quats, g.log_scales, g.opacities, g.sh0, g.shN,
-                                                        degree, K, c2w, height, width, self.antialiased)
-        else:
-            # the labels name the step's stages in a profile (scripts/profile_splat_step.py)
-            with record_function("splats.project"):
-                projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
-            with record_function("splats.sh"):
-                directions = g.means.index_select(0, projection.ids) - c2w[:3, 3]
-                # only the seen Gaussians' coefficients of the bands in use, gathered (not every Gaussian's concatenated first)
-                higher = g.shN[:, : coefficients_for(degree) - 1]
-                coefficients = torch.cat([g.sh0.index_select(0, projection.ids), higher.index_select(0, projection.ids)], dim=1)
-                colours = spherical_harmonics(degree, coefficients, directions)
+        drawer = self.drawer()
+        projection, colours = drawer.project(self.gaussians, self.sh_degree(), K, c2w, height, width)
         background = self.space.background if background is None else background
         with record_function("splats.rasterize"):
             # the absolute screen-space gradients where the strategy reads them (AbsGS), in training only
             absgrad = self.training and self.strategy is not None and self.strategy.absgrad
-            out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs,
-                                 absgrad)
+            out = drawer.rasterize(projection, colours, height, width, background.to(colours), absgrad)
         if depth:
             out["depth"] = out["depth"] * pixel_ray_lengths(K, height, width)
         else:
@@ -376,8 +352,8 @@ class SplatModule(SceneModule):
             footprints = Projection(*(value.detach() for value in projection))
             with torch.enable_grad():
                 ones = torch.ones(len(footprints.ids), 3, device=self.device, requires_grad=True)
-                rgb = rasterize_view(footprints, ones, train.height, train.width, torch.zeros(3, device=self.device),
-                                     self.rasterizer, self.max_pairs)["rgb"]
+                rgb = self.drawer().rasterize(footprints, ones, train.height, train.width,
+                                              torch.zeros(3, device=self.device))["rgb"]
                 ((rgb[..., 0] * errors).sum() + rgb[..., 1].sum()).backward()
             high.index_add_(0, footprints.ids, ones.grad[:, 0])
             drawn.index_add_(0, footprints.ids, ones.grad[:, 1])
@@ -460,12 +436,8 @@ class SplatModule(SceneModule):
     def photometric_loss(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None) -> tuple[torch.Tensor, float | None]:
         """(1 - w) L1 + w (1 - SSIM) of rgb (H, W, 3) against image (H, W, 3), means over ``mask`` (H, W) where given
         (:func:`~nerf_lightning.splats.loss.photometric_loss`), and the mean squared error where it comes free: in one
-        numba pass where numba draws (:mod:`~nerf_lightning.splats.loss_fast`), else PyTorch's operators and None."""
-        if self.numba_draws():
-            from nerf_lightning.splats.loss_fast import photometric_loss_fast
-
-            return photometric_loss_fast(rgb, image, self.ssim_weight, mask)
-        return photometric_loss(rgb, image, self.ssim_weight, mask), None
+        numba pass where numba draws (:meth:`~nerf_lightning.splats.draw.ViewDrawer.photometric_loss`), else None."""
+        return self.drawer().photometric_loss(rgb, image, self.ssim_weight, mask)
 
     def on_after_backward(self) -> None:
         if self.strategy is not None and self._drawn is not None:

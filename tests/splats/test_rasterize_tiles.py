@@ -211,6 +211,8 @@ def test_the_rasterizer_group_builds_the_choosers_and_the_old_keys_are_answered(
     assert "use model.rasterizer.max_pairs" in renamed_key_message(["model.max_pairs=10"])
     assert "use model.rasterizer.antialiased" in renamed_key_message(["model.antialiased=true"])
     assert renamed_key_message(["model/rasterizer=tiles", "model.rasterizer.max_pairs=10"]) is None
+    with pytest.raises(ValueError, match="model.rasterizer.max_pairs must be >= 1, got 0"):
+        PairsRasterizer(max_pairs=0)
 
 
 @pytest.mark.parametrize("mode", [torch.no_grad, torch.inference_mode])
@@ -278,7 +280,7 @@ def test_the_fall_off_is_exp_where_the_loops_ask_it() -> None:
     sigmas = np.linspace(0.0, 6.0, 100_001)
     fades = np.array([fade(sigma) for sigma in sigmas[::97]])
     np.testing.assert_allclose(fades, np.exp(-sigmas[::97]), rtol=1e-8, atol=0.0)
-    # past the table (an opacity over 1 given to TileRasterize) it stays on it; a NaN sigma gives NaN, as exp does
+    # past the table (an opacity over 1 given to the tile kernels) it stays on it; a NaN sigma gives NaN, as exp does
     assert 0.0 <= fade(100.0) < 1e-3 and np.isnan(fade(float("nan")))
 
 

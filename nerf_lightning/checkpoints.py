@@ -19,6 +19,7 @@ from omegaconf import OmegaConf
 
 from nerf_lightning import __version__
 from nerf_lightning.config import run_dir_of  # noqa: F401 (its home was here; imported from here by earlier code)
+from nerf_lightning.config import upgraded_model_config
 from nerf_lightning.devices import enable_tf32, resolve_device
 from nerf_lightning.io import write_atomic
 
@@ -173,7 +174,7 @@ def load_model(ckpt_path: str | Path, device: str | torch.device = "cpu", trust:
     checkpoint = read_checkpoint(path, "cpu", trust=trust)
     info = checkpoint["nerf_lightning"]
     config = info["config"]
-    model = instantiate(OmegaConf.create(config["model"]))
+    model = instantiate(OmegaConf.create(upgraded_model_config(config["model"])))
     model.on_load_checkpoint(checkpoint)
     model.load_state_dict(checkpoint["state_dict"])
     model.eval()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from hydra import compose, initialize_config_module
 from omegaconf import DictConfig, OmegaConf
@@ -51,6 +52,24 @@ RENAMED_KEYS = {
     "model.max_pairs": ("model.rasterizer.max_pairs", "", RASTERIZER_04),
     "model.antialiased": ("model.rasterizer.antialiased", "", RASTERIZER_04),
 }
+
+
+# what a splat model's config written before 0.4 named in model.rasterizer, as the object that draws now
+RASTERIZER_TARGETS = {name: f"nerf_lightning.splats.draw.{kind}Rasterizer"
+                      for name, kind in (("auto", "Tile"), ("tiles", "Tile"), ("pairs", "Pairs"))}
+
+
+def upgraded_model_config(model: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's model config as this version builds it: a splat model trained before 0.4 named its rasteriser
+    (``rasterizer: auto``, ``tiles`` or ``pairs``) beside ``max_pairs`` and ``antialiased``, which are now the keys of
+    the one object ``model.rasterizer`` (:data:`RASTERIZER_04`). Other configs come back as they are."""
+    if not isinstance(model.get("rasterizer"), str) or model["rasterizer"] not in RASTERIZER_TARGETS:
+        return model
+    model = dict(model)
+    name = model.pop("rasterizer")
+    model["rasterizer"] = {"_target_": RASTERIZER_TARGETS[name], "max_pairs": model.pop("max_pairs", 4_000_000),
+                           "antialiased": model.pop("antialiased", False)}
+    return model
 
 
 def renamed_key_message(overrides: Sequence[str]) -> str | None:

@@ -215,6 +215,20 @@ def test_the_rasterizer_group_builds_the_choosers_and_the_old_keys_are_answered(
         PairsRasterizer(max_pairs=0)
 
 
+def test_a_splat_checkpoints_config_from_before_0_4_builds_its_rasterizer():
+    """0.3 wrote model.rasterizer as a name beside model.max_pairs and model.antialiased: a checkpoint's config with
+    them builds the same choice (checkpoints.load_model upgrades it)."""
+    from nerf_lightning.config import upgraded_model_config
+
+    old = {"_target_": "nerf_lightning.models.SplatModule", "rasterizer": "pairs", "max_pairs": 500, "antialiased": True,
+           "ssim_weight": 0.2}
+    new = upgraded_model_config(old)
+    rasterizer = instantiate(new["rasterizer"])
+    assert type(rasterizer) is PairsRasterizer and (rasterizer.max_pairs, rasterizer.antialiased) == (500, True)
+    assert "max_pairs" not in new and "antialiased" not in new and new["ssim_weight"] == 0.2
+    assert upgraded_model_config(new) == new and type(instantiate(upgraded_model_config({"rasterizer": "auto"})["rasterizer"])) is TileRasterizer
+
+
 @pytest.mark.parametrize("mode", [torch.no_grad, torch.inference_mode])
 def test_auto_takes_tiles_where_the_first_view_is_drawn_without_gradients(mode):
     """nerf-render, nerf-eval and the viewer draw their first view under no_grad (render_view) or inference_mode: the

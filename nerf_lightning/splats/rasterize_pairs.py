@@ -1,8 +1,8 @@
 """The pairs rasteriser: footprints to pixels through (footprint, pixel) pairs, in plain PyTorch on every device.
 
-The same values as :func:`~nerf_lightning.splats.rasterize_reference.rasterize_reference` (the tests hold them equal), but
-only where a footprint can be drawn: each footprint lists the pixels of its box (``repeat_interleave``, no loop over
-footprints), the pairs too faint are dropped, one sort orders the rest by pixel and then by depth, and
+The same values as :func:`~nerf_lightning.splats.rasterize_reference.rasterize_reference` (the tests hold them
+equal), but only where a footprint can be drawn: each footprint lists the pixels of its box (``repeat_interleave``,
+no loop over footprints), the pairs too faint are dropped, one sort orders the rest by pixel and then by depth, and
 :func:`~nerf_lightning.rendering.compositing.weights_from_alpha_packed` composites each pixel's pairs front to back,
 as the NeRF renderers composite a ray's samples (a pixel is a ray whose samples are footprints).
 
@@ -10,9 +10,8 @@ Memory grows with the pairs, about 100 bytes each with gradients: a view whose p
 bands of rows, each within the budget (a single row over it is drawn alone).
 
 Asked with ``absgrad=True``, every rasteriser's backward pass also leaves ``means2d.absgrad``
-(:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`):
-for each footprint, the sum over its pixels of the absolute value of each pixel's pull on its centre (AbsGS's
-densification statistic, which a strategy asks for).
+(:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`): for each footprint, the sum over its pixels of the
+absolute value of each pixel's pull on its centre (AbsGS's densification statistic, which a strategy asks for).
 """
 
 from __future__ import annotations
@@ -92,9 +91,10 @@ def drawn_pairs(footprints: torch.Tensor, boxes: torch.Tensor, start: int, stop:
 
     ``footprints`` (M, 6) is :func:`footprint_table`, ``boxes`` (M, 4)
     :func:`~nerf_lightning.splats.rasterize_core.pixel_boxes`. The pairs are listed in two steps, each a
-    ``repeat_interleave``: every footprint's rows within its box (a span), then the columns of each span where the footprint is drawn. Along a span dy is fixed and sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is a
-    quadratic in dx, so those columns are the interval where sigma <= log(255 o), solved for once a span: no pair is
-    listed only to be dropped.
+    ``repeat_interleave``: every footprint's rows within its box (a span), then the columns of each span where the
+    footprint is drawn. Along a span dy is fixed and sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is a quadratic in dx, so
+    those columns are the interval where sigma <= log(255 o), solved for once a span: no pair is listed only to be
+    dropped.
 
     With ``absgrad`` (a (M0, 2) sum and (M,) the row of it each footprint adds to), the backward pass adds each pair's
     absolute pull on its footprint's centre, |d loss / d sigma| x |(a dx + b dy, b dx + c dy)|

@@ -27,9 +27,8 @@ table step and a short polynomial written into the loops (:func:`fade`, within 3
 footprint's gradient sums are held in registers, and the loops are compiled with fast-math: within the tests' 1e-5 of
 the reference, a pair costs a few arithmetic operations and no call.
 
-The two kernels :data:`NUMBA_TILES` (:func:`forward`, :func:`backward`) run through the autograd function all tile
-rasterisers share, :class:`~nerf_lightning.splats.rasterize_core.TileComposite`, which reads the packed rows' columns
-by the names :mod:`~nerf_lightning.splats.rasterize_core` gives them.
+:data:`NUMBA_TILES` (:func:`forward`, :func:`backward`) run through the tile rasterisers' one autograd function
+(:class:`~nerf_lightning.splats.rasterize_core.TileComposite`, where the packed rows' columns are named).
 """
 
 from __future__ import annotations

@@ -23,9 +23,10 @@ them equal), without a tensor of (footprint, pixel) pairs, and the same steps as
 Transmittance, the per-pixel sums, the sum behind and a tile's gradient sums are carried in float64 (a pixel may take
 hundreds of footprints, and the backward pass divides by 1 - alpha; the tests hold the gradients to 1e-5, which float32
 sums miss), the outputs and the slots' sums in float32 (float64 for float64 inputs). float64 runs at half float32's
-rate on data-centre GPUs and far slower on consumer ones, but a step's time goes elsewhere (docs/benchmarks.md). Triton compiles the kernels for the GPU the first time
-they run; on CPU tensors they run in Triton's interpreter (numpy), which is how the tests check them without a GPU:
-far too slow to draw with, so :mod:`~nerf_lightning.splats.draw` takes this path on CUDA only.
+rate on data-centre GPUs and far slower on consumer ones, but a step's time goes elsewhere (docs/benchmarks.md).
+Triton compiles the kernels for the GPU the first time they run; on CPU tensors they run in Triton's interpreter
+(numpy), which is how the tests check them without a GPU: far too slow to draw with, so
+:mod:`~nerf_lightning.splats.draw` takes this path on CUDA only.
 
 The kernels run through the autograd function all tile rasterisers share (:data:`TRITON_TILES`:
 :class:`~nerf_lightning.splats.rasterize_core.TileComposite`) and read the packed rows' columns by the names

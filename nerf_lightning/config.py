@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from hydra import compose, initialize_config_module
 from omegaconf import DictConfig, OmegaConf
@@ -38,6 +39,7 @@ RENAMED_DATA = {**{name: f"data=rays data/scene={name} (data=views data/scene={n
                    for name in ("blender", "llff", "npz", "procedural", "transforms", "turntable")},
                 "image": "data=pixels"}
 START_04 = "in nerf-lightning 0.4, when the splats' start and loss became objects (model/start, model.loss)"
+RASTERIZER_04 = "in nerf-lightning 0.4, when what draws a splat model's views became one object, model/rasterizer"
 
 # Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
@@ -63,6 +65,8 @@ RENAMED_KEYS = {
     "model.random_beside_points": ("model.start.beside", "", START_04),
     "model.ssim_weight": ("model.loss.ssim_weight", "", START_04),
     "model.sh_degree_interval": ("model.gaussians.sh_degree_interval", "", START_04),
+    "model.max_pairs": ("model.rasterizer.max_pairs", "", RASTERIZER_04),
+    "model.antialiased": ("model.rasterizer.antialiased", "", RASTERIZER_04),
 }
 
 # Keys that moved for the splats alone (the radiance fields keep them where they were): answered where the command
@@ -87,6 +91,9 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
                     "(its keys are the same), or model/renderer=table for a step of fixed shapes")
         if key == "data" and value.strip() in RENAMED_DATA:
             return f"'data={value.strip()}' was replaced {DATA_04} (see the README): use {RENAMED_DATA[value.strip()]}"
+        if key == "model.rasterizer" and value.strip() in ("auto", "tiles", "pairs"):
+            # the name of a group's choice, where a value was written before (model.rasterizer.* are its keys now)
+            return f"'{override}' was replaced {RASTERIZER_04} (see CHANGELOG.md): use model/rasterizer={value.strip()}"
         for old, (new, note, why) in RENAMED_KEYS.items():
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")

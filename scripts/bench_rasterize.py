@@ -15,8 +15,9 @@ import torch
 
 from nerf_lightning.bench.micro import add_common_arguments, finish, start_result, time_call
 from nerf_lightning.splats.projection import Projection
-from nerf_lightning.splats.rasterize import drawn_pairs, footprint_table, pixel_boxes
-from nerf_lightning.splats.rasterizers import rasterize_view
+from nerf_lightning.splats.draw import RASTERIZERS
+from nerf_lightning.splats.rasterize_core import pixel_boxes
+from nerf_lightning.splats.rasterize_pairs import drawn_pairs, footprint_table
 
 
 def main() -> None:
@@ -34,14 +35,16 @@ def main() -> None:
     result = {**start_result("cpu"), "benchmark": "rasterize", "view": args.view, "height": height, "width": width,
               "footprints": len(base.ids), "pairs": pairs, "rasterizers": {}}
     for name in args.rasterizers:
+        drawer = RASTERIZERS[name]().for_device("cpu")
+
         def forward() -> None:
             with torch.no_grad():
-                rasterize_view(base, saved["colours"], height, width, background, name)
+                drawer.rasterize(base, saved["colours"], height, width, background)
 
         def forward_backward() -> None:
             projection = Projection(base.ids, *(value.clone().requires_grad_() for value in base[1:]))
             colours = saved["colours"].clone().requires_grad_()
-            out = rasterize_view(projection, colours, height, width, background, name)
+            out = drawer.rasterize(projection, colours, height, width, background)
             (out["rgb"].sum() + out["depth"].sum()).backward()
 
         result["rasterizers"][name] = {"forward": time_call(forward, args.repeats, args.warmup),

@@ -28,6 +28,7 @@ from torch.profiler import ProfilerActivity, profile
 import torch
 
 from nerf_lightning.bench.micro import add_common_arguments, compose_preset, finish, seed_everything, start_result
+from nerf_lightning.splats.draw import RASTERIZERS
 from nerf_lightning.splats.sh import spherical_harmonics
 from nerf_lightning.training import train
 
@@ -41,6 +42,7 @@ class StageProfiler(L.Callback):
 
     def __init__(self, grow_steps: int, steps: int, rasterizers: list[str], save_view: str | None = None) -> None:
         self.grow_steps, self.steps, self.rasterizers, self.save_view = grow_steps, steps, rasterizers, save_view
+        self._choosers: dict[str, Any] = {}
         self.results: dict[str, Any] = {}
         self._profile: Any = None
         self._mark: dict[str, float] = {}
@@ -58,7 +60,10 @@ class StageProfiler(L.Callback):
         phase = self._phase(trainer.global_step)
         if phase is None:
             return
-        pl_module.rasterizer = phase[0]
+        if phase[0] not in self._choosers:  # one a rasteriser, tried (its probe) in its warm-up step
+            now = pl_module.rasterizer
+            self._choosers[phase[0]] = RASTERIZERS[phase[0]](now.max_pairs, now.antialiased)
+        pl_module.rasterizer = self._choosers[phase[0]]
         self._c2w, self._size = batch["c2w"].float(), tuple(batch["image"].shape[:2])
         if phase[1] == 1:
             self._profile = profile(activities=[ProfilerActivity.CPU])
@@ -126,7 +131,7 @@ def main() -> None:
             f"trainer.max_steps={total}", "data.val_every=null", "data.val_steps=[]", "++trainer.limit_val_batches=0",
             "++trainer.num_sanity_val_steps=0", "trainer.max_time=null", "trainer.enable_progress_bar=false",
             "trainer.enable_model_summary=false", "++trainer.enable_checkpointing=false", "callbacks=none", "~logger",
-            "trainer.accelerator=cpu", "trainer.devices=1", f"seed={args.seed}", "model.rasterizer=tiles",
+            "trainer.accelerator=cpu", "trainer.devices=1", f"seed={args.seed}", "model/rasterizer=tiles",
             "+callbacks.stage_profiler._target_=__main__.StageProfiler", f"+callbacks.stage_profiler.grow_steps={args.grow_steps}",
             f"+callbacks.stage_profiler.steps={args.steps}", f"+callbacks.stage_profiler.save_view={args.save_view or 'null'}", f"+callbacks.stage_profiler.rasterizers=[{','.join(args.rasterizers)}]",
             *args.overrides,

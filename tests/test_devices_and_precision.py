@@ -14,7 +14,7 @@ from torch.utils._pytree import tree_leaves
 from hydra.utils import instantiate
 
 from nerf_lightning.devices import resolve_device
-from nerf_lightning.splats import rasterizers
+from nerf_lightning.splats.draw import FastKernels
 from tests.test_experiments import EXPERIMENTS, tiny_data, tiny_overrides  # noqa: F401 (tiny_data is a fixture)
 
 RADIANCE_PRESETS = [name for name in EXPERIMENTS if name != "image"]
@@ -85,7 +85,7 @@ def test_a_training_step_of_every_preset_uses_no_float64(experiment, tiny_data, 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     # on CUDA the splats' Triton kernels carry transmittance in float64, which CUDA has; an Apple GPU draws with the
     # pairs rasteriser, so that is the one checked here, wherever the test runs
-    monkeypatch.setattr(rasterizers, "_triton_ready", False)
+    monkeypatch.setattr(FastKernels, "triton", lambda self: None)
     watcher = TrainingStepsWithoutFloat64()
     trainer = fit(make_config(*tiny_overrides(experiment, tiny_data), "data.val_every=null", "trainer.max_steps=2"), watcher)
     assert trainer.global_step == 2 and watcher.steps == 2

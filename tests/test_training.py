@@ -54,7 +54,7 @@ def test_the_same_seed_gives_the_same_metrics_from_memory_or_memory_mapped_image
 def test_the_same_seed_gives_the_same_metrics_for_splats_drawn_by_the_tile_rasteriser(cached_scene, tmp_path):
     # the tile rasteriser's threads each add into their own slots, summed in a fixed order: no race reaches the weights
     small = ["experiment=splat_procedural", "trainer.accelerator=cpu", "data.scene.size=32", "model.start.random.count=2000",
-             "model.rasterizer=tiles", "trainer.max_steps=60", "data.val_every=60", "data.val_views=1",
+             "model/rasterizer=tiles", "trainer.max_steps=60", "data.val_every=60", "data.val_views=1",
              "model.strategy.refine_start=20", "model.strategy.refine_every=20", "trainer.enable_progress_bar=false",
              "trainer.enable_model_summary=false"]
     runs = [train(compose_config([*small, f"paths.output_dir={tmp_path / run}"])) for run in ("a", "b")]

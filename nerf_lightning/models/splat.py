@@ -1,7 +1,7 @@
 """Fitting 3D Gaussians to posed images (3D Gaussian splatting, Kerbl et al. 2023), in plain PyTorch.
 
 Each step draws one training view (or a patch: ``data=views``), projects the Gaussians into its camera
-(:mod:`~nerf_lightning.splats.projection`), rasterises them (:mod:`~nerf_lightning.splats.rasterize`) and takes
+(:mod:`~nerf_lightning.splats.projection`), rasterises them (:mod:`~nerf_lightning.splats.draw`) and takes
 the loss (``model.loss``, :class:`~nerf_lightning.splats.loss.SplatLoss`: 0.8 L1 + 0.2 (1 - SSIM)) against the photo;
 a strategy (:mod:`~nerf_lightning.splats.strategy`) grows and prunes the Gaussians from the screen-space gradients.
 Where the Gaussians start is an object of its own (``model/start``, :mod:`~nerf_lightning.models.splat_start`).
@@ -32,11 +32,10 @@ from nerf_lightning.parameters.exposure import ViewExposure
 from nerf_lightning.parameters.per_view import PerViewTable
 from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
+from nerf_lightning.splats.draw import Rasterizer, TileRasterizer, ViewDrawer, device_for_splats
 from nerf_lightning.splats.loss import SplatLoss
-from nerf_lightning.splats.projection import Projection, pixel_ray_lengths, project
-from nerf_lightning.splats.rasterize import MAX_PAIRS
-from nerf_lightning.splats.rasterizers import AUTO, TILES, check_rasterizer, choose_rasterizer, device_for_splats, rasterize_view
-from nerf_lightning.splats.sh import coefficients_for, spherical_harmonics
+from nerf_lightning.splats.projection import Projection, pixel_ray_lengths
+from nerf_lightning.splats.sh import coefficients_for
 from nerf_lightning.splats.strategy import Strategy
 
 log = logging.getLogger(__name__)
@@ -63,11 +62,10 @@ class SplatModule(SceneModule):
         steps: the steps the means' learning rate decays over (the run's ``trainer.max_steps``).
         start: where the Gaussians start when fitting starts on a new run (``model/start``:
             :mod:`~nerf_lightning.models.splat_start`); None: the capture's sparse points, else a random box.
-        antialiased: Mip-Splatting's opacity compensation of the low-pass filter.
-        rasterizer: which rasteriser draws (:mod:`~nerf_lightning.splats.rasterizers`): ``auto`` (numba tiles on a
-            CPU, plain PyTorch on a GPU), ``tiles`` or ``pairs`` (plain PyTorch everywhere).
-        max_pairs: (Gaussian, pixel) pairs drawn at once by the ``pairs`` rasteriser
-            (:mod:`~nerf_lightning.splats.rasterize`): the memory a view takes, about 100 bytes a pair with gradients.
+        rasterizer: what draws a view (:mod:`~nerf_lightning.splats.draw`, ``model/rasterizer``): the tile
+            rasteriser of the device (:class:`~nerf_lightning.splats.draw.TileRasterizer`, None: that one) or plain
+            PyTorch's pairs (:class:`~nerf_lightning.splats.draw.PairsRasterizer`), with the pairs' memory budget
+            (``max_pairs``) and Mip-Splatting's opacity compensation of the low-pass filter (``antialiased``).
         loss: what a training step is scored by (:class:`~nerf_lightning.splats.loss.SplatLoss`: the SSIM's weight,
             the mask loss, the training background); None: its defaults.
         appearance: a learnt colour transform for each training view
@@ -88,8 +86,8 @@ class SplatModule(SceneModule):
 
     def __init__(self, gaussians: Gaussians, optimizer: Callable[..., torch.optim.Optimizer], learning_rates: dict[str, float],
                  scheduler: Callable[..., Any] | None = None, strategy: Strategy | None = None, steps: int = 30_000,
-                 means_final_ratio: float = 0.01, start: Start | None = None, antialiased: bool = False, rasterizer: str = AUTO,
-                 max_pairs: int = MAX_PAIRS, loss: SplatLoss | None = None, appearance: ViewColourAffine | ViewExposure | None = None,
+                 means_final_ratio: float = 0.01, start: Start | None = None, rasterizer: Rasterizer | None = None,
+                 loss: SplatLoss | None = None, appearance: ViewColourAffine | ViewExposure | None = None,
                  camera_refinement: CameraRefinement | None = None) -> None:
         super().__init__(optimizer, scheduler)
         missing = set(PARAMETERS) - set(learning_rates)
@@ -101,9 +99,7 @@ class SplatModule(SceneModule):
         self.start = SparsePointsStart() if start is None else start
         self.loss = SplatLoss() if loss is None else loss
         self.appearance, self.camera_refinement = appearance, camera_refinement
-        self.antialiased, self.max_pairs = antialiased, max_pairs
-        check_rasterizer(rasterizer)  # a wrong name refused now, not at the first view
-        self.rasterizer = rasterizer
+        self.rasterizer = TileRasterizer() if rasterizer is None else rasterizer
         self.register_buffer("scene_scale", torch.tensor(1.0))
         self._drawn: tuple[Projection, int, int, float] | None = None  # what the strategy reads after the backward pass
         self._step_logged: tuple[torch.Tensor, torch.Tensor, float | None] | None = None  # rgb, image, mse, until logged
@@ -190,47 +186,27 @@ class SplatModule(SceneModule):
     @staticmethod
     def device_for(device: torch.device | str, asked: bool) -> torch.device:
         """Where this model trains and draws when ``device`` was chosen (``asked``: by name, not ``auto``): the CPU's
-        tiles in place of an Apple GPU not asked for (:func:`~nerf_lightning.splats.rasterizers.device_for_splats`)."""
+        tiles in place of an Apple GPU not asked for (:func:`~nerf_lightning.splats.draw.device_for_splats`)."""
         return device_for_splats(device, asked)
 
-    def numba_draws(self) -> bool:
-        """Whether numba's loops draw on this model's device (``model.rasterizer``'s choice: ``tiles`` on a CPU): then
-        the projection and colours, and the training loss, take their fused numba paths too."""
-        return choose_rasterizer(self.device.type, self.rasterizer) == TILES
+    def drawer(self) -> ViewDrawer:
+        """What draws a view on this model's device (``model.rasterizer``'s choice there): the projection and colours,
+        the rasteriser, and the training loss that goes with them."""
+        return self.rasterizer.for_device(self.device.type)
 
     def draw(self, K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
              background: torch.Tensor | None = None, depth: bool = True) -> tuple[dict[str, torch.Tensor], Projection]:
         """K (3, 3), OpenCV c2w (4, 4) -> rgb (H, W, 3), depth (H, W) (distance along the pixels' unit rays, as the
         NeRF renderers measure it; left out without ``depth``: a training step does not read it), accumulation
         (H, W), and the :class:`Projection` (for the strategy)."""
-        g = self.gaussians
         K, c2w = K.to(self.device, torch.float32), c2w.to(self.device, torch.float32)
-        degree = self.sh_degree()
-        learned_camera = torch.is_grad_enabled() and c2w.requires_grad  # camera refinement: the reference's autograd
-        if not learned_camera and self.numba_draws():
-            # projection and colour in one numba loop, forward and backward, held equal to the two PyTorch steps
-            # below; where tiles draw, numba is there
-            from nerf_lightning.splats.projection_fast import project_and_shade
-
-            with record_function("splats.project_and_shade"):
-                projection, colours = project_and_shade(g.means, g.quats, g.log_scales, g.opacities, g.sh0, g.shN,
-                                                        degree, K, c2w, height, width, self.antialiased)
-        else:
-            # the labels name the step's stages in a profile (scripts/profile_splat_step.py)
-            with record_function("splats.project"):
-                projection = project(g.means, g.quats, g.log_scales, g.opacities, K, c2w, height, width, self.antialiased)
-            with record_function("splats.sh"):
-                directions = g.means.index_select(0, projection.ids) - c2w[:3, 3]
-                # only the seen Gaussians' coefficients of the bands in use, gathered (not every Gaussian's concatenated first)
-                higher = g.shN[:, : coefficients_for(degree) - 1]
-                coefficients = torch.cat([g.sh0.index_select(0, projection.ids), higher.index_select(0, projection.ids)], dim=1)
-                colours = spherical_harmonics(degree, coefficients, directions)
+        drawer = self.drawer()
+        projection, colours = drawer.project(self.gaussians, self.sh_degree(), K, c2w, height, width)
         background = self.space.background if background is None else background
         with record_function("splats.rasterize"):
             # the absolute screen-space gradients where the strategy reads them (AbsGS), in training only
             absgrad = self.training and self.strategy is not None and self.strategy.absgrad
-            out = rasterize_view(projection, colours, height, width, background.to(colours), self.rasterizer, self.max_pairs,
-                                 absgrad)
+            out = drawer.rasterize(projection, colours, height, width, background.to(colours), absgrad)
         if depth:
             out["depth"] = out["depth"] * pixel_ray_lengths(K, height, width)
         else:
@@ -268,8 +244,8 @@ class SplatModule(SceneModule):
             footprints = Projection(*(value.detach() for value in projection))
             with torch.enable_grad():
                 ones = torch.ones(len(footprints.ids), 3, device=self.device, requires_grad=True)
-                rgb = rasterize_view(footprints, ones, train.height, train.width, torch.zeros(3, device=self.device),
-                                     self.rasterizer, self.max_pairs)["rgb"]
+                rgb = self.drawer().rasterize(footprints, ones, train.height, train.width,
+                                              torch.zeros(3, device=self.device))["rgb"]
                 ((rgb[..., 0] * errors).sum() + rgb[..., 1].sum()).backward()
             high.index_add_(0, footprints.ids, ones.grad[:, 0])
             drawn.index_add_(0, footprints.ids, ones.grad[:, 1])
@@ -316,7 +292,7 @@ class SplatModule(SceneModule):
         if mask is not None:
             rgb = torch.where(mask[..., None], rgb, image)
         with record_function("splats.loss"):
-            loss, mse = self.loss.photometric(rgb, image, mask, fused=self.numba_draws())
+            loss, mse = self.loss.photometric(rgb, image, mask, fused=self.drawer().numba)
         if self.loss.mask_loss:
             mask_term = self.loss.of_mask(out["accumulation"], batch.get("object_mask"))
             loss = loss + mask_term

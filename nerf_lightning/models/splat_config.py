@@ -1,7 +1,8 @@
 """A splat model's config as a checkpoint written before nerf-lightning 0.4 saved it, read as 0.4 builds it: the
 start's seven keys became the ``model.start`` object (:mod:`~nerf_lightning.models.splat_start`), the loss's three
 the ``model.loss`` object (:class:`~nerf_lightning.splats.loss.SplatLoss`), ``sh_degree_interval`` a key of the
-Gaussians, and MCMC's strategy moved to :mod:`~nerf_lightning.splats.mcmc`. :func:`~nerf_lightning.checkpoints.load_model`
+Gaussians, MCMC's strategy moved to :mod:`~nerf_lightning.splats.mcmc`, and the rasteriser's name, ``max_pairs`` and
+``antialiased`` became the ``model.rasterizer`` object (:mod:`~nerf_lightning.splats.draw`). :func:`~nerf_lightning.checkpoints.load_model`
 asks the model's class for it (``SplatModule.upgrade_config``); a config of 0.4 passes through unchanged."""
 
 from __future__ import annotations
@@ -15,6 +16,9 @@ RANDOM_KEYS = {"random_count": "count", "random_near": "near", "random_scale": "
 LOSS_KEYS = ("ssim_weight", "mask_loss", "train_background")
 OLD_KEYS = (*RANDOM_KEYS, "random_start", "random_extent", "triangulate", "random_beside_points", *LOSS_KEYS, "sh_degree_interval")
 MOVED_TARGETS = {"nerf_lightning.splats.strategy.MCMCStrategy": "nerf_lightning.splats.mcmc.MCMCStrategy"}
+# what model.rasterizer named before 0.4 (beside max_pairs and antialiased), as the object that draws now
+RASTERIZER_TARGETS = {name: f"nerf_lightning.splats.draw.{kind}Rasterizer"
+                      for name, kind in (("auto", "Tile"), ("tiles", "Tile"), ("pairs", "Pairs"))}
 
 
 def config_before_04(model: Mapping[str, Any]) -> dict[str, Any]:
@@ -24,6 +28,9 @@ def config_before_04(model: Mapping[str, Any]) -> dict[str, Any]:
     strategy = model.get("strategy")
     if isinstance(strategy, Mapping) and strategy.get("_target_") in MOVED_TARGETS:
         model["strategy"] = {**strategy, "_target_": MOVED_TARGETS[strategy["_target_"]]}
+    if isinstance(model.get("rasterizer"), str) and model["rasterizer"] in RASTERIZER_TARGETS:
+        model["rasterizer"] = {"_target_": RASTERIZER_TARGETS[model.pop("rasterizer")],
+                               "max_pairs": model.pop("max_pairs", 4_000_000), "antialiased": model.pop("antialiased", False)}
     old = {key: model.pop(key) for key in OLD_KEYS if key in model}
     if not old:
         return model

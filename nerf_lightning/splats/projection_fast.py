@@ -26,28 +26,9 @@ import numpy as np
 import torch
 
 from nerf_lightning.splats.projection import LOW_PASS, MAX_SIGMAS, MIN_ALPHA, NEAR_PLANE, Projection
-from nerf_lightning.splats.sh import SH_C0, SH_C1, SH_C2, SH_C3, coefficients_for
+from nerf_lightning.splats.sh import coefficients_for
+from nerf_lightning.splats.sh_fast import sh_backward, sh_colour
 
-
-@numba.njit(inline="always")
-def _sh_colour(degree, sh0, shN, g, x, y, z, channel):
-    """One channel of Gaussian g's colour seen along the unit direction (x, y, z): sum_k c_k Y_k + 0.5, clamped at 0
-    (:func:`~nerf_lightning.splats.sh.sh_basis`'s constants and signs)."""
-    colour = SH_C0 * sh0[g, 0, channel]
-    if degree > 0:
-        colour += -SH_C1 * y * shN[g, 0, channel] + SH_C1 * z * shN[g, 1, channel] - SH_C1 * x * shN[g, 2, channel]
-    if degree > 1:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        colour += (SH_C2[0] * xy * shN[g, 3, channel] + SH_C2[1] * yz * shN[g, 4, channel]
-                   + SH_C2[2] * (2.0 * zz - xx - yy) * shN[g, 5, channel] + SH_C2[3] * xz * shN[g, 6, channel]
-                   + SH_C2[4] * (xx - yy) * shN[g, 7, channel])
-        if degree > 2:
-            colour += (SH_C3[0] * y * (3.0 * xx - yy) * shN[g, 8, channel] + SH_C3[1] * xy * z * shN[g, 9, channel]
-                       + SH_C3[2] * y * (4.0 * zz - xx - yy) * shN[g, 10, channel]
-                       + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * shN[g, 11, channel]
-                       + SH_C3[4] * x * (4.0 * zz - xx - yy) * shN[g, 12, channel]
-                       + SH_C3[5] * z * (xx - yy) * shN[g, 13, channel] + SH_C3[6] * x * (xx - 3.0 * yy) * shN[g, 14, channel])
-    return max(colour + 0.5, 0.0)
 
 
 @numba.njit(inline="always", error_model="numpy")
@@ -138,7 +119,90 @@ def project_and_shade_loop(means, quats, log_scales, opacities, sh0, shN, degree
         length = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
         dx, dy, dz = dx / length, dy / length, dz / length
         for channel in range(3):
-            colours[g, channel] = _sh_colour(degree, sh0, shN, g, dx, dy, dz, channel)
+            colours[g, channel] = sh_colour(degree, sh0, shN, g, dx, dy, dz, channel)
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _covariance_backward(grad_footprints, m, opacity, antialiased, a, b, c, f00, f11, determinant):
+    """The loss's gradients of footprint m's conic (c, -b, a) / det and opacity (``grad_footprints`` (M, 7)) back to
+    its covariance F = U U^T, through F + 0.3 I and with ``antialiased`` the opacity's compensation: d F00, d F11,
+    d F01 (b) and the Gaussian's ``opacity``'s gradient."""
+    inverse = 1.0 / determinant
+    grad_det = -inverse * inverse * (grad_footprints[m, 2] * c - grad_footprints[m, 3] * b + grad_footprints[m, 4] * a)
+    grad_a, grad_b, grad_c = grad_footprints[m, 4] * inverse, -grad_footprints[m, 3] * inverse, grad_footprints[m, 2] * inverse
+    grad_f00, grad_f11 = 0.0, 0.0
+    grad_alpha = np.float64(grad_footprints[m, 5])
+    if antialiased:  # alpha = o sqrt(max(det(F) / det(F + 0.3 I), 1e-10))
+        unfiltered = f00 * f11 - b * b
+        ratio = unfiltered / determinant
+        if ratio >= 1e-10:
+            compensation = math.sqrt(ratio)
+            grad_ratio = grad_alpha * opacity * 0.5 / compensation
+            grad_unfiltered = grad_ratio / determinant
+            grad_det -= grad_ratio * ratio / determinant
+            grad_f00 += grad_unfiltered * f11
+            grad_f11 += grad_unfiltered * f00
+            grad_b -= 2.0 * b * grad_unfiltered
+        else:
+            compensation = math.sqrt(1e-10)
+        grad_opacity = grad_alpha * compensation
+    else:
+        grad_opacity = grad_alpha
+    grad_a += grad_det * c
+    grad_c += grad_det * a
+    grad_b -= 2.0 * b * grad_det
+    grad_f00 += grad_a
+    grad_f11 += grad_c
+    return grad_f00, grad_f11, grad_b, grad_opacity
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _scale_rotation_backward(gm00, gm01, gm02, gm10, gm11, gm12, gm20, gm21, gm22, q00, q01, q02, q10, q11, q12, q20, q21,
+                             q22, s0, s1, s2, qw, qx, qy, qz, norm, grad_log_scales, grad_quats):
+    """The gradient of M = R(q) diag(s) (gm, row-major) back to the log scales and to the quaternion before its
+    normalisation (norm |q|, unit (qw, qx, qy, qz), rotation q00..q22), written into one Gaussian's rows
+    ``grad_log_scales`` (3,) and ``grad_quats`` (4,)."""
+    # M = R(q) diag(s): the log scales and the rotation
+    grad_log_scales[0] = (gm00 * q00 + gm10 * q10 + gm20 * q20) * s0
+    grad_log_scales[1] = (gm01 * q01 + gm11 * q11 + gm21 * q21) * s1
+    grad_log_scales[2] = (gm02 * q02 + gm12 * q12 + gm22 * q22) * s2
+    g00, g01, g02 = gm00 * s0, gm01 * s1, gm02 * s2
+    g10, g11, g12 = gm10 * s0, gm11 * s1, gm12 * s2
+    g20, g21, g22 = gm20 * s0, gm21 * s1, gm22 * s2
+    gw = 2.0 * (-qz * g01 + qy * g02 + qz * g10 - qx * g12 - qy * g20 + qx * g21)
+    gx = 2.0 * (qy * g01 + qz * g02 + qy * g10 - 2.0 * qx * g11 - qw * g12 + qz * g20 + qw * g21 - 2.0 * qx * g22)
+    gy = 2.0 * (-2.0 * qy * g00 + qx * g01 + qw * g02 + qx * g10 + qz * g12 - qw * g20 + qz * g21 - 2.0 * qy * g22)
+    gz = 2.0 * (-2.0 * qz * g00 - qw * g01 + qx * g02 + qw * g10 - 2.0 * qz * g11 + qy * g12 + qx * g20 + qy * g21)
+    # the quaternion's normalisation q / |q|
+    along = qw * gw + qx * gx + qy * gy + qz * gz
+    grad_quats[0] = (gw - qw * along) / norm
+    grad_quats[1] = (gx - qx * along) / norm
+    grad_quats[2] = (gy - qy * along) / norm
+    grad_quats[3] = (gz - qz * along) / norm
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _axes_backward(grad_f00, grad_f11, grad_b, u0, u1, u2, v0, v1, v2, a00, a01, a02, a10, a11, a12, a20, a21, a22,
+                   j00, j02, j11, j12, camera):
+    """The gradient of the footprint's covariance F = U U^T (d F00, d F11, d F01 = b), U = J A (rows u, v), A = W M,
+    back to the EWA Jacobian J's four entries and to M = R(q) diag(s) (row-major), for W the camera's rotation (the
+    first nine of ``camera``, row-major). Fewer than 31 arguments: CPython passes more as a tuple, which numba cannot
+    inline."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (camera[0], camera[1], camera[2], camera[3], camera[4], camera[5],
+                                                   camera[6], camera[7], camera[8])
+    gu0, gu1, gu2 = 2.0 * grad_f00 * u0 + grad_b * v0, 2.0 * grad_f00 * u1 + grad_b * v1, 2.0 * grad_f00 * u2 + grad_b * v2
+    gv0, gv1, gv2 = 2.0 * grad_f11 * v0 + grad_b * u0, 2.0 * grad_f11 * v1 + grad_b * u1, 2.0 * grad_f11 * v2 + grad_b * u2
+    grad_j00 = gu0 * a00 + gu1 * a01 + gu2 * a02
+    grad_j02 = gu0 * a20 + gu1 * a21 + gu2 * a22
+    grad_j11 = gv0 * a10 + gv1 * a11 + gv2 * a12
+    grad_j12 = gv0 * a20 + gv1 * a21 + gv2 * a22
+    ga00, ga01, ga02 = j00 * gu0, j00 * gu1, j00 * gu2
+    ga10, ga11, ga12 = j11 * gv0, j11 * gv1, j11 * gv2
+    ga20, ga21, ga22 = j02 * gu0 + j12 * gv0, j02 * gu1 + j12 * gv1, j02 * gu2 + j12 * gv2
+    # A = W M: d M = W^T d A
+    gm00, gm01, gm02, gm10, gm11, gm12, gm20, gm21, gm22 = _product(r00, r10, r20, r01, r11, r21, r02, r12, r22,
+                                                                    ga00, ga01, ga02, ga10, ga11, ga12, ga20, ga21, ga22)
+    return grad_j00, grad_j02, grad_j11, grad_j12, gm00, gm01, gm02, gm10, gm11, gm12, gm20, gm21, gm22
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -178,62 +242,16 @@ def project_and_shade_backward_loop(means, quats, log_scales, opacities, sh0, sh
         determinant = a * c - b * b
         # -- the conic (c, -b, a) / det and the opacity, back to the footprint's covariance
         grad_u, grad_v = np.float64(grad_footprints[m, 0]), np.float64(grad_footprints[m, 1])
-        inverse = 1.0 / determinant
-        grad_det = -inverse * inverse * (grad_footprints[m, 2] * c - grad_footprints[m, 3] * b + grad_footprints[m, 4] * a)
-        grad_a, grad_b, grad_c = grad_footprints[m, 4] * inverse, -grad_footprints[m, 3] * inverse, grad_footprints[m, 2] * inverse
-        grad_f00, grad_f11 = 0.0, 0.0
-        grad_alpha = np.float64(grad_footprints[m, 5])
-        if antialiased:  # alpha = o sqrt(max(det(F) / det(F + 0.3 I), 1e-10))
-            unfiltered = f00 * f11 - b * b
-            ratio = unfiltered / determinant
-            if ratio >= 1e-10:
-                compensation = math.sqrt(ratio)
-                grad_ratio = grad_alpha * opacities[g] * 0.5 / compensation
-                grad_unfiltered = grad_ratio / determinant
-                grad_det -= grad_ratio * ratio / determinant
-                grad_f00 += grad_unfiltered * f11
-                grad_f11 += grad_unfiltered * f00
-                grad_b -= 2.0 * b * grad_unfiltered
-            else:
-                compensation = math.sqrt(1e-10)
-            grad_opacities[g] = grad_alpha * compensation
-        else:
-            grad_opacities[g] = grad_alpha
-        grad_a += grad_det * c
-        grad_c += grad_det * a
-        grad_b -= 2.0 * b * grad_det
-        grad_f00 += grad_a
-        grad_f11 += grad_c
+        grad_f00, grad_f11, grad_b, grad_opacity = _covariance_backward(grad_footprints, m, opacities[g], antialiased, a, b,
+                                                                        c, f00, f11, determinant)
+        grad_opacities[g] = grad_opacity
         # -- F = U U^T with U = J A (rows u, v), A = W R S
-        gu0, gu1, gu2 = 2.0 * grad_f00 * u0 + grad_b * v0, 2.0 * grad_f00 * u1 + grad_b * v1, 2.0 * grad_f00 * u2 + grad_b * v2
-        gv0, gv1, gv2 = 2.0 * grad_f11 * v0 + grad_b * u0, 2.0 * grad_f11 * v1 + grad_b * u1, 2.0 * grad_f11 * v2 + grad_b * u2
-        grad_j00 = gu0 * a00 + gu1 * a01 + gu2 * a02
-        grad_j02 = gu0 * a20 + gu1 * a21 + gu2 * a22
-        grad_j11 = gv0 * a10 + gv1 * a11 + gv2 * a12
-        grad_j12 = gv0 * a20 + gv1 * a21 + gv2 * a22
-        ga00, ga01, ga02 = j00 * gu0, j00 * gu1, j00 * gu2
-        ga10, ga11, ga12 = j11 * gv0, j11 * gv1, j11 * gv2
-        ga20, ga21, ga22 = j02 * gu0 + j12 * gv0, j02 * gu1 + j12 * gv1, j02 * gu2 + j12 * gv2
-        # A = W M: d M = W^T d A
-        gm00, gm01, gm02, gm10, gm11, gm12, gm20, gm21, gm22 = _product(r00, r10, r20, r01, r11, r21, r02, r12, r22,
-                                                                        ga00, ga01, ga02, ga10, ga11, ga12, ga20, ga21, ga22)
-        # M = R(q) diag(s): the log scales and the rotation
-        grad_log_scales[g, 0] = (gm00 * q00 + gm10 * q10 + gm20 * q20) * s0
-        grad_log_scales[g, 1] = (gm01 * q01 + gm11 * q11 + gm21 * q21) * s1
-        grad_log_scales[g, 2] = (gm02 * q02 + gm12 * q12 + gm22 * q22) * s2
-        g00, g01, g02 = gm00 * s0, gm01 * s1, gm02 * s2
-        g10, g11, g12 = gm10 * s0, gm11 * s1, gm12 * s2
-        g20, g21, g22 = gm20 * s0, gm21 * s1, gm22 * s2
-        gw = 2.0 * (-qz * g01 + qy * g02 + qz * g10 - qx * g12 - qy * g20 + qx * g21)
-        gx = 2.0 * (qy * g01 + qz * g02 + qy * g10 - 2.0 * qx * g11 - qw * g12 + qz * g20 + qw * g21 - 2.0 * qx * g22)
-        gy = 2.0 * (-2.0 * qy * g00 + qx * g01 + qw * g02 + qx * g10 + qz * g12 - qw * g20 + qz * g21 - 2.0 * qy * g22)
-        gz = 2.0 * (-2.0 * qz * g00 - qw * g01 + qx * g02 + qw * g10 - 2.0 * qz * g11 + qy * g12 + qx * g20 + qy * g21)
-        # the quaternion's normalisation q / |q|
-        along = qw * gw + qx * gx + qy * gy + qz * gz
-        grad_quats[g, 0] = (gw - qw * along) / norm
-        grad_quats[g, 1] = (gx - qx * along) / norm
-        grad_quats[g, 2] = (gy - qy * along) / norm
-        grad_quats[g, 3] = (gz - qz * along) / norm
+        (grad_j00, grad_j02, grad_j11, grad_j12,
+         gm00, gm01, gm02, gm10, gm11, gm12, gm20, gm21, gm22) = _axes_backward(grad_f00, grad_f11, grad_b, u0, u1, u2, v0, v1, v2,
+                                                                               a00, a01, a02, a10, a11, a12, a20, a21, a22,
+                                                                               j00, j02, j11, j12, camera)
+        _scale_rotation_backward(gm00, gm01, gm02, gm10, gm11, gm12, gm20, gm21, gm22, q00, q01, q02, q10, q11, q12,
+                                 q20, q21, q22, s0, s1, s2, qw, qx, qy, qz, norm, grad_log_scales[g], grad_quats[g])
         # -- the mean in the camera: means2d, depth and J (at x / z and y / z clamped)
         z2 = z * z
         grad_x, grad_y = grad_u * fx / z, grad_v * fy / z
@@ -256,83 +274,13 @@ def project_and_shade_backward_loop(means, quats, log_scales, opacities, sh0, sh
         dx, dy, dz = mx - ox, my - oy, mz - oz
         length = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
         dx, dy, dz = dx / length, dy / length, dz / length
-        xx, yy, zz, xy, yz, xz = dx * dx, dy * dy, dz * dz, dx * dy, dy * dz, dx * dz
-        gdx, gdy, gdz = 0.0, 0.0, 0.0
-        for channel in range(3):
-            grad = np.float64(grad_colours[m, channel])
-            if _sh_colour(degree, sh0, shN, g, dx, dy, dz, channel) <= 0.0:  # clamped at 0: no gradient
-                grad = 0.0
-            grad_sh0[g, 0, channel] = SH_C0 * grad
-            if degree > 0:
-                grad_shN[g, 0, channel] = -SH_C1 * dy * grad
-                grad_shN[g, 1, channel] = SH_C1 * dz * grad
-                grad_shN[g, 2, channel] = -SH_C1 * dx * grad
-                gdy -= SH_C1 * grad * shN[g, 0, channel]
-                gdz += SH_C1 * grad * shN[g, 1, channel]
-                gdx -= SH_C1 * grad * shN[g, 2, channel]
-            if degree > 1:
-                grad_shN[g, 3, channel] = SH_C2[0] * xy * grad
-                grad_shN[g, 4, channel] = SH_C2[1] * yz * grad
-                grad_shN[g, 5, channel] = SH_C2[2] * (2.0 * zz - xx - yy) * grad
-                grad_shN[g, 6, channel] = SH_C2[3] * xz * grad
-                grad_shN[g, 7, channel] = SH_C2[4] * (xx - yy) * grad
-                k = SH_C2[0] * grad * shN[g, 3, channel]
-                gdx += k * dy
-                gdy += k * dx
-                k = SH_C2[1] * grad * shN[g, 4, channel]
-                gdy += k * dz
-                gdz += k * dy
-                k = SH_C2[2] * grad * shN[g, 5, channel]
-                gdx -= 2.0 * dx * k
-                gdy -= 2.0 * dy * k
-                gdz += 4.0 * dz * k
-                k = SH_C2[3] * grad * shN[g, 6, channel]
-                gdx += k * dz
-                gdz += k * dx
-                k = SH_C2[4] * grad * shN[g, 7, channel]
-                gdx += 2.0 * dx * k
-                gdy -= 2.0 * dy * k
-            if degree > 2:
-                grad_shN[g, 8, channel] = SH_C3[0] * dy * (3.0 * xx - yy) * grad
-                grad_shN[g, 9, channel] = SH_C3[1] * xy * dz * grad
-                grad_shN[g, 10, channel] = SH_C3[2] * dy * (4.0 * zz - xx - yy) * grad
-                grad_shN[g, 11, channel] = SH_C3[3] * dz * (2.0 * zz - 3.0 * xx - 3.0 * yy) * grad
-                grad_shN[g, 12, channel] = SH_C3[4] * dx * (4.0 * zz - xx - yy) * grad
-                grad_shN[g, 13, channel] = SH_C3[5] * dz * (xx - yy) * grad
-                grad_shN[g, 14, channel] = SH_C3[6] * dx * (xx - 3.0 * yy) * grad
-                k = SH_C3[0] * grad * shN[g, 8, channel]
-                gdx += 6.0 * xy * k
-                gdy += 3.0 * (xx - yy) * k
-                k = SH_C3[1] * grad * shN[g, 9, channel]
-                gdx += yz * k
-                gdy += xz * k
-                gdz += xy * k
-                k = SH_C3[2] * grad * shN[g, 10, channel]
-                gdx -= 2.0 * xy * k
-                gdy += (4.0 * zz - xx - 3.0 * yy) * k
-                gdz += 8.0 * yz * k
-                k = SH_C3[3] * grad * shN[g, 11, channel]
-                gdx -= 6.0 * xz * k
-                gdy -= 6.0 * yz * k
-                gdz += (6.0 * zz - 3.0 * xx - 3.0 * yy) * k
-                k = SH_C3[4] * grad * shN[g, 12, channel]
-                gdx += (4.0 * zz - 3.0 * xx - yy) * k
-                gdy -= 2.0 * xy * k
-                gdz += 8.0 * xz * k
-                k = SH_C3[5] * grad * shN[g, 13, channel]
-                gdx += 2.0 * xz * k
-                gdy -= 2.0 * yz * k
-                gdz += (xx - yy) * k
-                k = SH_C3[6] * grad * shN[g, 14, channel]
-                gdx += 3.0 * (xx - yy) * k
-                gdy -= 6.0 * xy * k
+        gdx, gdy, gdz = sh_backward(degree, sh0, shN, g, m, grad_colours, dx, dy, dz, grad_sh0, grad_shN)
         if degree > 0:  # the direction's normalisation d / |d|
             along = dx * gdx + dy * gdy + dz * gdz
             gmx += (gdx - dx * along) / length
             gmy += (gdy - dy * along) / length
             gmz += (gdz - dz * along) / length
         grad_means[g, 0], grad_means[g, 1], grad_means[g, 2] = gmx, gmy, gmz
-
 
 
 @numba.njit(cache=True)

@@ -1,35 +1,34 @@
 """The rasteriser's CPU fast path: footprints binned into tiles and composited by numba loops, forward and backward,
 as 3D Gaussian splatting and gsplat do it on a GPU.
 
-The same values and gradients as :func:`~nerf_lightning.splats.rasterize_dense.rasterize_dense` (the tests hold them
-equal), without a tensor of (footprint, pixel) pairs:
+The same values and gradients as :func:`~nerf_lightning.splats.rasterize_reference.rasterize_reference` (the tests hold
+them equal), without a tensor of (footprint, pixel) pairs:
 
-1. **Binning** (:func:`bin_footprints`): each footprint's pixel box (:func:`~nerf_lightning.splats.rasterize.pixel_boxes`)
-   says which ``tile`` x ``tile`` tiles it touches. The footprints are sorted nearest first once (a stable radix
+1. **Binning** (:func:`bin_footprints`): each footprint's pixel box (:func:`pixel_boxes`) says which ``tile`` x
+   ``tile`` tiles it touches. The footprints are sorted nearest first once (a stable radix
    sort, ties by index, as the reference's one sort of them all), packed in that order a row each
    (:func:`pack_footprints`: a tile's loop then reads forwards through memory), and listed tile by tile.
 2. **Forward** (:func:`composite_tiles`), a parallel loop over tiles: a tile keeps its pixels' transmittance and sums,
    and takes its footprints nearest first, each over the pixels of its box inside the tile only. A pair is skipped
-   where alpha = min(0.999, o exp(-sigma)) < 1/255 (without an exp where sigma is past log(255 o)); a pixel is done before the footprint that would take its
-   transmittance to 1e-4 or below; a tile stops when all its pixels are done. Each pixel keeps the transmittance it
-   ended with and the tile-list position where it stopped.
+   where alpha = min(0.999, o exp(-sigma)) < 1/255 (without an exp where sigma is past log(255 o)); a pixel is done
+   before the footprint that would take its transmittance to 1e-4 or below; a tile stops when all its pixels are
+   done. Each pixel keeps the transmittance it ended with and the tile-list position where it stopped.
 3. **Backward** (:func:`composite_tiles_backward`): each tile walks its list back to front, recovering every pixel's
    transmittance before a footprint from the one after it (T_i = T_i+1 / (1 - alpha_i)) and the weighted gradient
    sum of the footprints behind it, so that d loss / d alpha_i = T_i g_i - (sum_{j > i} w_j g_j) / (1 - alpha_i).
    A footprint's gradient within a tile is summed over the tile's pixels in a fixed order into its own slot of the
-   tile list, beside the sum of the absolute values of each pixel's pull on its centre (``means2d.absgrad``:
-   :func:`~nerf_lightning.splats.rasterize.keep_absgrad`); :func:`sum_slots` then adds a footprint's slots in a fixed order. No two threads add into one number, so
-   the same input gives the same gradients bit for bit, however the threads are scheduled.
+   tile list, beside the sum of the absolute values of each pixel's pull on its centre (``means2d.absgrad``);
+   :func:`sum_slots` then adds a footprint's slots in a fixed order. No two threads add into one number, so the
+   same input gives the same gradients bit for bit, however the threads are scheduled.
 
 Transmittances and sums are carried in float64 inside the loops (a pixel may take hundreds of footprints, and the
-backward pass divides by 1 - alpha), the outputs are in the inputs' dtype. The Gaussian's fall-off exp(-sigma) is
-a table step and a short polynomial written into the loops (:func:`fade`, within 3e-9 of exp), the four features (colour and depth) and
-a footprint's gradient sums are held in registers, and the loops are compiled with fast-math: within the tests' 1e-5
-of the reference, a pair costs a few arithmetic operations and no call.
+backward pass divides by 1 - alpha), the outputs are in the inputs' dtype. The Gaussian's fall-off exp(-sigma) is a
+table step and a short polynomial written into the loops (:func:`fade`, within 3e-9 of exp), the four features and a
+footprint's gradient sums are held in registers, and the loops are compiled with fast-math: within the tests' 1e-5 of
+the reference, a pair costs a few arithmetic operations and no call.
 
-The autograd function :class:`TileRasterize` returns each pixel's weighted sums of the footprints' ``features``
-(colour and depth) and its accumulation; :func:`rasterize_tiles` blends the background and divides the depth in
-PyTorch, as :func:`~nerf_lightning.splats.rasterize.rasterize` does.
+:data:`NUMBA_TILES` (:func:`forward`, :func:`backward`) run through the tile rasterisers' one autograd function
+(:class:`~nerf_lightning.splats.rasterize_core.TileComposite`, where the packed rows' columns are named).
 """
 
 from __future__ import annotations
@@ -39,18 +38,17 @@ import numpy as np
 import torch
 
 from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
-from nerf_lightning.splats.rasterize import composite_features
+from nerf_lightning.splats.rasterize_core import (BOX_COLUMN, CONIC_COLUMN, FADE_COLUMN, FEATURE_COLUMN, FEATURES,
+                                                  GRAD_ABSOLUTE, GRAD_CONIC, GRAD_FEATURES, GRAD_MEANS2D, GRAD_OPACITY,
+                                                  GRADIENTS, MEANS2D_COLUMN, OPACITY_COLUMN, PACKED, TILE, TileKernels,
+                                                  composite_features)
 
-# a tile's side in pixels (3DGS's and gsplat's 16)
-TILE = 16
-# what the loops draw a footprint with: its colour (3) and its depth, the last, by which the footprints are ordered
-FEATURES = 4
-# a packed footprint's row (:func:`pack_footprints`): means2d (2), conic (3), opacity, fade limit, features (4), pixel
-# box (4: first and last column, first and last row), one unused (16 float64: two cache lines)
-PACKED = 16
-# a footprint's gradient from one tile: means2d (2), conic (3), opacity, features (4), and the absolute pulls on its
-# centre (2: its absgrad)
-GRADIENTS = 12
+# the packed row's columns as the loops read them (numba takes module constants as compile-time ones)
+U, V = MEANS2D_COLUMN, MEANS2D_COLUMN + 1
+A, B, C = CONIC_COLUMN, CONIC_COLUMN + 1, CONIC_COLUMN + 2
+F0, F1, F2, F3 = FEATURE_COLUMN, FEATURE_COLUMN + 1, FEATURE_COLUMN + 2, FEATURE_COLUMN + 3
+G_F0, G_F1, G_F2, G_F3 = GRAD_FEATURES, GRAD_FEATURES + 1, GRAD_FEATURES + 2, GRAD_FEATURES + 3
+FIRST_COLUMN, LAST_COLUMN, FIRST_ROW, LAST_ROW = BOX_COLUMN, BOX_COLUMN + 1, BOX_COLUMN + 2, BOX_COLUMN + 3
 
 
 def depth_keys(depths: np.ndarray) -> tuple[np.ndarray, int]:
@@ -89,21 +87,20 @@ def nearest_first(keys: np.ndarray, bits: int) -> np.ndarray:
 
 @numba.njit(parallel=True, cache=True)
 def pack_footprints(order, means2d, conics, opacities, features, fade_limits, boxes):
-    """(M, :data:`PACKED`) float64: the footprints in drawing order (``order`` (M,), nearest first), a row each as the
-    loops read it (see :data:`PACKED`): a tile's loop reads its footprints forwards through one array, and binning
-    reads the boxes in order. Measured against six arrays indexed by footprint, it was neutral to a few percent faster
-    (docs/benchmarks.md): the pairs' arithmetic, not these reads, is what a composite costs."""
+    """(M, PACKED) float64: the footprints in drawing order (``order`` (M,), nearest first), a row each as the loops
+    read it (its columns named in :mod:`~nerf_lightning.splats.rasterize_core`): a tile's loop reads its footprints
+    forwards through one array, and binning reads the boxes in order."""
     packed = np.empty((order.shape[0], PACKED), np.float64)
     for i in numba.prange(order.shape[0]):
         f = order[i]
-        packed[i, 0], packed[i, 1] = means2d[f, 0], means2d[f, 1]
-        packed[i, 2], packed[i, 3], packed[i, 4] = conics[f, 0], conics[f, 1], conics[f, 2]
-        packed[i, 5], packed[i, 6] = opacities[f], fade_limits[f]
+        packed[i, U], packed[i, V] = means2d[f, 0], means2d[f, 1]
+        packed[i, A], packed[i, B], packed[i, C] = conics[f, 0], conics[f, 1], conics[f, 2]
+        packed[i, OPACITY_COLUMN], packed[i, FADE_COLUMN] = opacities[f], fade_limits[f]
         for j in range(FEATURES):
-            packed[i, 7 + j] = features[f, j]
+            packed[i, FEATURE_COLUMN + j] = features[f, j]
         for j in range(4):
-            packed[i, 11 + j] = boxes[f, j]
-        packed[i, 15] = 0.0
+            packed[i, BOX_COLUMN + j] = boxes[f, j]
+        packed[i, PACKED - 1] = 0.0
     return packed
 
 
@@ -124,7 +121,7 @@ def bin_footprints(packed: np.ndarray, tiles_x: int, tiles_y: int):
     slot_offsets = np.zeros(n + 1, np.int64)
     for i in range(n):
         slot_offsets[i + 1] = slot_offsets[i]
-        c0, c1, r0, r1 = int(packed[i, 11]), int(packed[i, 12]), int(packed[i, 13]), int(packed[i, 14])
+        c0, c1, r0, r1 = int(packed[i, FIRST_COLUMN]), int(packed[i, LAST_COLUMN]), int(packed[i, FIRST_ROW]), int(packed[i, LAST_ROW])
         if c1 < c0 or r1 < r0:
             continue
         slot_offsets[i + 1] += (c1 // TILE - c0 // TILE + 1) * (r1 // TILE - r0 // TILE + 1)
@@ -137,7 +134,7 @@ def bin_footprints(packed: np.ndarray, tiles_x: int, tiles_y: int):
     slots = np.empty(offsets[n_tiles], np.int64)
     cursor = offsets[:n_tiles].copy()
     for i in range(n):
-        c0, c1, r0, r1 = int(packed[i, 11]), int(packed[i, 12]), int(packed[i, 13]), int(packed[i, 14])
+        c0, c1, r0, r1 = int(packed[i, FIRST_COLUMN]), int(packed[i, LAST_COLUMN]), int(packed[i, FIRST_ROW]), int(packed[i, LAST_ROW])
         if c1 < c0 or r1 < r0:
             continue
         k = slot_offsets[i]
@@ -178,7 +175,7 @@ def fade(sigma: float) -> float:
 @numba.njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
 def composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shaded, accumulation, transmittance, stop):
     """Composite every pixel front to back. Inputs: the binning (:func:`bin_footprints`) of the footprints
-    ``packed`` (M, :data:`PACKED`) in drawing order (:func:`pack_footprints`; a footprint's features, colour and
+    ``packed`` (M, PACKED) in drawing order (:func:`pack_footprints`; a footprint's features, colour and
     depth, are held in registers while it is drawn). Written: ``shaded`` (H * W, 4) the
     weighted sums of the features, ``accumulation`` (H * W,) the sum of the weights, ``transmittance`` (H * W,)
     float64 what is left after the last footprint drawn, ``stop`` (H * W,) int64 the tile-list position at which
@@ -197,12 +194,12 @@ def composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shad
             if active == 0:
                 break
             r = entries[k]
-            mx, my = packed[r, 0], packed[r, 1]
-            half_a, b, half_c = 0.5 * packed[r, 2], packed[r, 3], 0.5 * packed[r, 4]
-            o, faint = packed[r, 5], packed[r, 6]
-            f0, f1, f2, f3 = packed[r, 7], packed[r, 8], packed[r, 9], packed[r, 10]
-            first, last = max(int(packed[r, 11]), x0), min(int(packed[r, 12]), x1 - 1)
-            for row in range(max(int(packed[r, 13]), y0), min(int(packed[r, 14]), y1 - 1) + 1):
+            mx, my = packed[r, U], packed[r, V]
+            half_a, b, half_c = 0.5 * packed[r, A], packed[r, B], 0.5 * packed[r, C]
+            o, faint = packed[r, OPACITY_COLUMN], packed[r, FADE_COLUMN]
+            f0, f1, f2, f3 = packed[r, F0], packed[r, F1], packed[r, F2], packed[r, F3]
+            first, last = max(int(packed[r, FIRST_COLUMN]), x0), min(int(packed[r, LAST_COLUMN]), x1 - 1)
+            for row in range(max(int(packed[r, FIRST_ROW]), y0), min(int(packed[r, LAST_ROW]), y1 - 1) + 1):
                 dy = row + 0.5 - my
                 b_dy, c_dy2 = b * dy, half_c * dy * dy
                 base = (row - y0) * tile_width - x0
@@ -243,7 +240,7 @@ def composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shad
 def composite_tiles_backward(offsets, entries, packed, height, width, tile, tiles_x, transmittance, stop, grad_shaded,
                              grad_accumulation, slot_grads):
     """The gradients of :func:`composite_tiles`, back to front. ``grad_shaded`` (H * W, 4) and ``grad_accumulation``
-    (H * W,) are the loss's gradients of its outputs; written: ``slot_grads`` (E, :data:`GRADIENTS`), for each
+    (H * W,) are the loss's gradients of its outputs; written: ``slot_grads`` (E, GRADIENTS), for each
     tile-list entry its footprint's gradient from that tile's pixels: d means2d (2), d conics (3), d opacity, d
     features (4), and the sums of the absolute values of each pixel's d means2d (2)."""
     n_tiles = offsets.shape[0] - 1
@@ -263,13 +260,13 @@ def composite_tiles_backward(offsets, entries, packed, height, width, tile, tile
             grad_in[p, 4] = grad_accumulation[pixel]
         for k in range(offsets[t + 1] - 1, offsets[t] - 1, -1):
             r = entries[k]
-            mx, my = packed[r, 0], packed[r, 1]
-            a, b, c = packed[r, 2], packed[r, 3], packed[r, 4]
-            o, faint = packed[r, 5], packed[r, 6]
-            f0, f1, f2, f3 = packed[r, 7], packed[r, 8], packed[r, 9], packed[r, 10]
-            first, last = max(int(packed[r, 11]), x0), min(int(packed[r, 12]), x1 - 1)
+            mx, my = packed[r, U], packed[r, V]
+            a, b, c = packed[r, A], packed[r, B], packed[r, C]
+            o, faint = packed[r, OPACITY_COLUMN], packed[r, FADE_COLUMN]
+            f0, f1, f2, f3 = packed[r, F0], packed[r, F1], packed[r, F2], packed[r, F3]
+            first, last = max(int(packed[r, FIRST_COLUMN]), x0), min(int(packed[r, LAST_COLUMN]), x1 - 1)
             g_mx = g_my = g_a = g_b = g_c = g_o = g_f0 = g_f1 = g_f2 = g_f3 = g_ax = g_ay = 0.0
-            for row in range(max(int(packed[r, 13]), y0), min(int(packed[r, 14]), y1 - 1) + 1):
+            for row in range(max(int(packed[r, FIRST_ROW]), y0), min(int(packed[r, LAST_ROW]), y1 - 1) + 1):
                 dy = row + 0.5 - my
                 b_dy, c_dy2 = b * dy, 0.5 * c * dy * dy
                 base = (row - y0) * tile_width - x0
@@ -308,9 +305,10 @@ def composite_tiles_backward(offsets, entries, packed, height, width, tile, tile
                         g_a += grad_sigma * 0.5 * dx * dx
                         g_b += grad_sigma * dx * dy
                         g_c += grad_sigma * 0.5 * dy * dy
-            slot_grads[k, 0], slot_grads[k, 1], slot_grads[k, 2], slot_grads[k, 3], slot_grads[k, 4] = g_mx, g_my, g_a, g_b, g_c
-            slot_grads[k, 5], slot_grads[k, 6], slot_grads[k, 7], slot_grads[k, 8], slot_grads[k, 9] = g_o, g_f0, g_f1, g_f2, g_f3
-            slot_grads[k, 10], slot_grads[k, 11] = g_ax, g_ay
+            slot_grads[k, GRAD_MEANS2D], slot_grads[k, GRAD_MEANS2D + 1], slot_grads[k, GRAD_OPACITY] = g_mx, g_my, g_o
+            slot_grads[k, GRAD_CONIC], slot_grads[k, GRAD_CONIC + 1], slot_grads[k, GRAD_CONIC + 2] = g_a, g_b, g_c
+            slot_grads[k, G_F0], slot_grads[k, G_F1], slot_grads[k, G_F2], slot_grads[k, G_F3] = g_f0, g_f1, g_f2, g_f3
+            slot_grads[k, GRAD_ABSOLUTE], slot_grads[k, GRAD_ABSOLUTE + 1] = g_ax, g_ay
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -337,7 +335,7 @@ def _numpy(tensor: torch.Tensor) -> np.ndarray:
 
 @numba.njit(cache=True)
 def pixel_boxes_loop(means2d, extents, half, height, width, boxes):
-    """:func:`~nerf_lightning.splats.rasterize.pixel_boxes` of (M, 2) means2d and extents into ``boxes`` (M, 4)
+    """:func:`~nerf_lightning.splats.rasterize_core.pixel_boxes` of (M, 2) means2d and extents into ``boxes`` (M, 4)
     int64, in the inputs' precision as PyTorch computes it (``half``: a one-element array of 0.5 in their dtype)."""
     for i in range(means2d.shape[0]):
         for axis, size in ((0, width), (1, height)):
@@ -348,56 +346,47 @@ def pixel_boxes_loop(means2d, extents, half, height, width, boxes):
 
 
 def pixel_boxes(projection: Projection, height: int, width: int) -> torch.Tensor:
-    """:func:`~nerf_lightning.splats.rasterize.pixel_boxes` in one numba loop (seventeen tensor operators there)."""
+    """:func:`~nerf_lightning.splats.rasterize_core.pixel_boxes` in one numba loop (seventeen tensor operators there)."""
     means2d, extents = _numpy(projection.means2d), _numpy(projection.extents)
     boxes = torch.empty((len(means2d), 4), dtype=torch.int64)
     pixel_boxes_loop(means2d, extents, np.full(1, 0.5, means2d.dtype), height, width, boxes.numpy())
     return boxes
 
 
-class TileRasterize(torch.autograd.Function):
-    """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, 4) features -> (H, W, 4) weighted feature sums and (H, W)
-    accumulation, differentiable in the four inputs; on CPU tensors. The last feature is the depth the footprints are
-    ordered by; ``boxes`` (M, 4) are their pixel boxes; ``absgrad`` (M, 2) or None, what the backward pass fills with
-    the absolute screen-space gradients (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
+def forward(means2d, conics, opacities, features, boxes, height: int, width: int):
+    """The forward kernel (:class:`~nerf_lightning.splats.rasterize_core.TileKernels`): CPU tensors -> shaded (H, W, 4),
+    accumulation (H, W) in the features' dtype, and what :func:`backward` needs."""
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    means2d_array, conics_array, opacities_array, features_array = (_numpy(x) for x in (means2d, conics, opacities, features))
+    order = nearest_first(*depth_keys(features_array[:, -1]))
+    packed = pack_footprints(order, means2d_array, conics_array, opacities_array, features_array,
+                             fade_limits(opacities_array), _numpy(boxes))
+    offsets, entries, slot_offsets, slots = bin_footprints(packed, tiles_x, tiles_y)
+    n_pixels, dtype = height * width, features_array.dtype
+    shaded = np.empty((n_pixels, FEATURES), dtype)
+    accumulation = np.empty(n_pixels, dtype)
+    transmittance = np.empty(n_pixels, np.float64)
+    stop = np.empty(n_pixels, np.int64)
+    composite_tiles(offsets, entries, packed, height, width, TILE, tiles_x, shaded, accumulation, transmittance, stop)
+    saved = (order, offsets, entries, slot_offsets, slots, packed, dtype, transmittance, stop, height, width, tiles_x)
+    return torch.from_numpy(shaded).reshape(height, width, -1), torch.from_numpy(accumulation).reshape(height, width), saved
 
-    @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int, absgrad=None):
-        if features.ndim != 2 or features.shape[1] != FEATURES:
-            raise ValueError(f"TileRasterize draws (M, {FEATURES}) features (colour and depth), got {tuple(features.shape)}")
-        tile = TILE
-        tiles_x, tiles_y = -(-width // tile), -(-height // tile)
-        means2d_array, conics_array, opacities_array, features_array = (_numpy(x) for x in (means2d, conics, opacities, features))
-        order = nearest_first(*depth_keys(features_array[:, -1]))
-        packed = pack_footprints(order, means2d_array, conics_array, opacities_array, features_array,
-                                 fade_limits(opacities_array), _numpy(boxes))
-        offsets, entries, slot_offsets, slots = bin_footprints(packed, tiles_x, tiles_y)
-        n_pixels, dtype = height * width, features_array.dtype
-        shaded = np.empty((n_pixels, FEATURES), dtype)
-        accumulation = np.empty(n_pixels, dtype)
-        transmittance = np.empty(n_pixels, np.float64)
-        stop = np.empty(n_pixels, np.int64)
-        composite_tiles(offsets, entries, packed, height, width, tile, tiles_x, shaded, accumulation, transmittance, stop)
-        ctx.saved = (order, offsets, entries, slot_offsets, slots, packed, dtype, transmittance, stop, height, width, tile, tiles_x)
-        ctx.absgrad = absgrad
-        return (torch.from_numpy(shaded).reshape(height, width, -1), torch.from_numpy(accumulation).reshape(height, width))
 
-    @staticmethod
-    def backward(ctx, grad_shaded, grad_accumulation):
-        order, offsets, entries, slot_offsets, slots, packed, dtype, transmittance, stop, height, width, tile, tiles_x = ctx.saved
-        grad_shaded = np.zeros((height * width, FEATURES), dtype) if grad_shaded is None else \
-            _numpy(grad_shaded).astype(dtype, copy=False).reshape(-1, FEATURES)
-        grad_accumulation = np.zeros(height * width, dtype) if grad_accumulation is None else \
-            _numpy(grad_accumulation).astype(dtype, copy=False).reshape(-1)
-        slot_grads = np.empty((len(entries), GRADIENTS), np.float64)
-        composite_tiles_backward(offsets, entries, packed, height, width, tile, tiles_x, transmittance, stop,
-                                 grad_shaded, grad_accumulation, slot_grads)
-        grads = np.zeros((len(order), GRADIENTS), np.float64)
-        sum_slots(order, slot_offsets, slots, slot_grads, grads)
-        grads = torch.from_numpy(grads.astype(dtype))
-        if ctx.absgrad is not None:
-            ctx.absgrad.add_(grads[:, 10:12])  # added, as the gradients are, should the graph be walked again
-        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:10], None, None, None, None
+def backward(saved, grad_shaded: torch.Tensor, grad_accumulation: torch.Tensor) -> torch.Tensor:
+    """The backward kernel: the loss's gradients of :func:`forward`'s outputs -> (M, GRADIENTS) in the footprints'
+    order, in their dtype."""
+    order, offsets, entries, slot_offsets, slots, packed, dtype, transmittance, stop, height, width, tiles_x = saved
+    grad_shaded = _numpy(grad_shaded).astype(dtype, copy=False).reshape(-1, FEATURES)
+    grad_accumulation = _numpy(grad_accumulation).astype(dtype, copy=False).reshape(-1)
+    slot_grads = np.empty((len(entries), GRADIENTS), np.float64)
+    composite_tiles_backward(offsets, entries, packed, height, width, TILE, tiles_x, transmittance, stop,
+                             grad_shaded, grad_accumulation, slot_grads)
+    grads = np.zeros((len(order), GRADIENTS), np.float64)
+    sum_slots(order, slot_offsets, slots, slot_grads, grads)
+    return torch.from_numpy(grads.astype(dtype))
+
+
+NUMBA_TILES = TileKernels("numba tile", forward, backward)
 
 
 def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, width: int,
@@ -405,5 +394,5 @@ def rasterize_tiles(projection: Projection, colours: torch.Tensor, height: int, 
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). CPU tensors; differentiable in the footprints and
     colours (and the background); with ``absgrad``, the backward pass fills ``projection.means2d.absgrad``
-    (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
-    return composite_features(TileRasterize.apply, projection, colours, height, width, background, absgrad, pixel_boxes)
+    (:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`)."""
+    return composite_features(NUMBA_TILES, projection, colours, height, width, background, absgrad, pixel_boxes)

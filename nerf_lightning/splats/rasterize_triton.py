@@ -1,8 +1,8 @@
 """The rasteriser's GPU fast path: footprints binned into tiles and composited by Triton kernels, forward and
 backward, as 3D Gaussian splatting and gsplat do it in CUDA.
 
-The same values and gradients as :func:`~nerf_lightning.splats.rasterize_dense.rasterize_dense` (the tests hold them
-equal), without a tensor of (footprint, pixel) pairs, and the same steps as the CPU's
+The same values and gradients as :func:`~nerf_lightning.splats.rasterize_reference.rasterize_reference` (the tests hold
+them equal), without a tensor of (footprint, pixel) pairs, and the same steps as the CPU's
 :mod:`~nerf_lightning.splats.rasterize_tiles`:
 
 1. **Binning** (:func:`bin_footprints`, PyTorch on the device): the footprints sorted nearest first (a stable sort,
@@ -16,16 +16,21 @@ equal), without a tensor of (footprint, pixel) pairs, and the same steps as the 
    (T_i = T_i+1 / (1 - alpha_i)), carrying the weighted gradient sum of the footprints behind, so that
    d loss / d alpha_i = T_i g_i - (sum_{j > i} w_j g_j) / (1 - alpha_i). A footprint's gradient from one tile is
    summed over the tile's pixels (a reduction of fixed shape) into the footprint's own slot, beside the sums of the
-   absolute values of each pixel's pull on its centre (``means2d.absgrad``:
-   :func:`~nerf_lightning.splats.rasterize.keep_absgrad`); ``_sum_slots`` then adds a footprint's slots in tile order. No two programs add into one number (no atomics), so the same input gives the
-   same gradients bit for bit.
+   absolute values of each pixel's pull on its centre (``means2d.absgrad``); ``_sum_slots`` then adds a footprint's
+   slots in tile order. No two programs add into one number (no atomics), so the same input gives the same gradients
+   bit for bit.
 
 Transmittance, the per-pixel sums, the sum behind and a tile's gradient sums are carried in float64 (a pixel may take
 hundreds of footprints, and the backward pass divides by 1 - alpha; the tests hold the gradients to 1e-5, which float32
 sums miss), the outputs and the slots' sums in float32 (float64 for float64 inputs). float64 runs at half float32's
-rate on data-centre GPUs and far slower on consumer ones, but a step's time goes elsewhere (docs/benchmarks.md). Triton compiles the kernels for the GPU the first time
-they run; on CPU tensors they run in Triton's interpreter (numpy), which is how the tests check them without a GPU:
-far too slow to draw with, so :mod:`~nerf_lightning.splats.rasterizers` takes this path on CUDA only.
+rate on data-centre GPUs and far slower on consumer ones, but a step's time goes elsewhere (docs/benchmarks.md).
+Triton compiles the kernels for the GPU the first time they run; on CPU tensors they run in Triton's interpreter
+(numpy), which is how the tests check them without a GPU: far too slow to draw with, so
+:mod:`~nerf_lightning.splats.draw` takes this path on CUDA only.
+
+The kernels run through the autograd function all tile rasterisers share (:data:`TRITON_TILES`:
+:class:`~nerf_lightning.splats.rasterize_core.TileComposite`) and read the packed rows' columns by the names
+:mod:`~nerf_lightning.splats.rasterize_core` gives them.
 """
 
 from __future__ import annotations
@@ -37,18 +42,17 @@ import triton
 import triton.language as tl
 
 from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
-from nerf_lightning.splats.rasterize import composite_features
+from nerf_lightning.splats.rasterize_core import (BOX_COLUMN, CONIC_COLUMN, FADE_COLUMN, FEATURE_COLUMN, FEATURES,
+                                                  GRAD_ABSOLUTE, GRAD_CONIC, GRAD_FEATURES, GRAD_MEANS2D, GRAD_OPACITY,
+                                                  GRADIENTS, MEANS2D_COLUMN, OPACITY_COLUMN, PACKED, TILE, TileKernels,
+                                                  composite_features)
 
-# a tile's side in pixels (3DGS's and gsplat's 16): a program's 256 lanes
-TILE = 16
-# what the kernels draw a footprint with: its colour (3) and its depth, the last, by which the footprints are ordered
-FEATURES = 4
-# a packed footprint's row: means2d (2), conic (3), opacity, features (4), pixel box (4: first and last column, first
-# and last row), two unused (16 numbers: whole cache sectors)
-PACKED = 16
-# a footprint's gradient from one tile: means2d (2), conic (3), opacity, features (4), and the absolute pulls on its
-# centre (2: its absgrad)
-GRADIENTS = 12
+# the packed row's and the gradient row's columns as the kernels read and write them (Triton reads module constants
+# only where they are constexpr)
+_MEANS2D, _CONIC, _OPACITY = tl.constexpr(MEANS2D_COLUMN), tl.constexpr(CONIC_COLUMN), tl.constexpr(OPACITY_COLUMN)
+_FEATURE, _BOX = tl.constexpr(FEATURE_COLUMN), tl.constexpr(BOX_COLUMN)
+_G_MEANS2D, _G_CONIC, _G_OPACITY = tl.constexpr(GRAD_MEANS2D), tl.constexpr(GRAD_CONIC), tl.constexpr(GRAD_OPACITY)
+_G_FEATURES, _G_ABSOLUTE = tl.constexpr(GRAD_FEATURES), tl.constexpr(GRAD_ABSOLUTE)
 # footprints a program of _sum_slots adds up
 SUM_BLOCK = 128
 
@@ -58,12 +62,13 @@ def _footprint(packed, entries, k, u, v, PACKED: tl.constexpr):
     """Tile-list entry k's footprint at the pixel centres (u, v): dx, dy, sigma, whether each pixel is in its box,
     its conic (a, b, c), opacity o and features f0..f3 (colour and depth)."""
     footprint = packed + tl.load(entries + k).to(tl.int64) * PACKED
-    mx, my = tl.load(footprint + 0), tl.load(footprint + 1)
-    a, b, c = tl.load(footprint + 2), tl.load(footprint + 3), tl.load(footprint + 4)
-    o = tl.load(footprint + 5)
-    f0, f1, f2, f3 = tl.load(footprint + 6), tl.load(footprint + 7), tl.load(footprint + 8), tl.load(footprint + 9)
-    in_box = (u >= tl.load(footprint + 10)) & (u <= tl.load(footprint + 11) + 1.0) \
-        & (v >= tl.load(footprint + 12)) & (v <= tl.load(footprint + 13) + 1.0)
+    mx, my = tl.load(footprint + _MEANS2D), tl.load(footprint + _MEANS2D + 1)
+    a, b, c = tl.load(footprint + _CONIC), tl.load(footprint + _CONIC + 1), tl.load(footprint + _CONIC + 2)
+    o = tl.load(footprint + _OPACITY)
+    f0, f1 = tl.load(footprint + _FEATURE), tl.load(footprint + _FEATURE + 1)
+    f2, f3 = tl.load(footprint + _FEATURE + 2), tl.load(footprint + _FEATURE + 3)
+    in_box = (u >= tl.load(footprint + _BOX)) & (u <= tl.load(footprint + _BOX + 1) + 1.0) \
+        & (v >= tl.load(footprint + _BOX + 2)) & (v <= tl.load(footprint + _BOX + 3) + 1.0)
     dx = u - mx
     dy = v - my
     sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
@@ -128,7 +133,7 @@ def _composite(packed, offsets, entries, height, width, tiles_x, shaded, accumul
 def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_x, transmittance, stop, grad_shaded,
                         grad_accumulation, slot_grads, TILE: tl.constexpr, PACKED: tl.constexpr,
                         GRADIENTS: tl.constexpr, MAX_ALPHA: tl.constexpr, MIN_ALPHA: tl.constexpr):
-    """Backward: one program a tile, back to front. Written: slot_grads (E, 12), at each tile-list entry's slot
+    """Backward: one program a tile, back to front. Written: slot_grads (E, GRADIENTS), at each tile-list entry's slot
     (``slot_of``), its footprint's gradient from this tile's pixels: d means2d (2), d conic (3), d opacity, d features
     (4), and the sums of the absolute values of each pixel's d means2d (2). Entries past every pixel's stop keep the
     zeros they were given."""
@@ -171,19 +176,19 @@ def _composite_backward(packed, offsets, entries, slot_of, height, width, tiles_
             slot = slot_grads + tl.load(slot_of + k) * GRADIENTS
             pull_x = grad_sigma * (a * x + b * y)
             pull_y = grad_sigma * (c * y + b * x)
-            tl.store(slot + 0, -tl.sum(pull_x, axis=0))
-            tl.store(slot + 1, -tl.sum(pull_y, axis=0))
-            tl.store(slot + 2, tl.sum(grad_sigma * 0.5 * x * x, axis=0))
-            tl.store(slot + 3, tl.sum(grad_sigma * x * y, axis=0))
-            tl.store(slot + 4, tl.sum(grad_sigma * 0.5 * y * y, axis=0))
-            tl.store(slot + 5, tl.sum(tl.where(unclamped, falloff * grad_alpha, 0.0), axis=0))
+            tl.store(slot + _G_MEANS2D, -tl.sum(pull_x, axis=0))
+            tl.store(slot + _G_MEANS2D + 1, -tl.sum(pull_y, axis=0))
+            tl.store(slot + _G_CONIC, tl.sum(grad_sigma * 0.5 * x * x, axis=0))
+            tl.store(slot + _G_CONIC + 1, tl.sum(grad_sigma * x * y, axis=0))
+            tl.store(slot + _G_CONIC + 2, tl.sum(grad_sigma * 0.5 * y * y, axis=0))
+            tl.store(slot + _G_OPACITY, tl.sum(tl.where(unclamped, falloff * grad_alpha, 0.0), axis=0))
             drawn = tl.where(take, weight, 0.0)
-            tl.store(slot + 6, tl.sum(drawn * g0, axis=0))
-            tl.store(slot + 7, tl.sum(drawn * g1, axis=0))
-            tl.store(slot + 8, tl.sum(drawn * g2, axis=0))
-            tl.store(slot + 9, tl.sum(drawn * g3, axis=0))
-            tl.store(slot + 10, tl.sum(tl.abs(pull_x), axis=0))
-            tl.store(slot + 11, tl.sum(tl.abs(pull_y), axis=0))
+            tl.store(slot + _G_FEATURES, tl.sum(drawn * g0, axis=0))
+            tl.store(slot + _G_FEATURES + 1, tl.sum(drawn * g1, axis=0))
+            tl.store(slot + _G_FEATURES + 2, tl.sum(drawn * g2, axis=0))
+            tl.store(slot + _G_FEATURES + 3, tl.sum(drawn * g3, axis=0))
+            tl.store(slot + _G_ABSOLUTE, tl.sum(tl.abs(pull_x), axis=0))
+            tl.store(slot + _G_ABSOLUTE + 1, tl.sum(tl.abs(pull_y), axis=0))
 
 
 @triton.jit
@@ -214,14 +219,14 @@ def kernels(device_type: str) -> tuple:
 
 
 def bin_footprints(packed: torch.Tensor, tiles_x: int, tiles_y: int) -> tuple[torch.Tensor, ...]:
-    """The footprints ``packed`` (M, 16) in drawing order, listed tile by tile.
+    """The footprints ``packed`` (M, PACKED) in drawing order, listed tile by tile.
 
     Returns ``offsets`` (T + 1,) int64 (tile t's footprints are ``entries[offsets[t]:offsets[t + 1]]``), ``entries``
     (E,) int32 rows of ``packed``, ``slot_of`` (E,) int64 where each entry's gradient goes, and ``first_slot`` (M,)
     and ``n_slots`` (M,) int64: a row's slots are ``first_slot[i]`` and the ``n_slots[i] - 1`` after it, in tile
     order. One stable sort by tile of the rows' (row, tile) pairs, listed row by row, keeps every tile nearest first."""
     device = packed.device
-    boxes = packed[:, 10:14].long()  # first and last column, first and last row
+    boxes = packed[:, BOX_COLUMN:BOX_COLUMN + 4].long()  # first and last column, first and last row
     drawn = (boxes[:, 1] >= boxes[:, 0]) & (boxes[:, 3] >= boxes[:, 2])
     tile_x0, tile_y0 = boxes[:, 0].div(TILE, rounding_mode="floor"), boxes[:, 2].div(TILE, rounding_mode="floor")
     across = boxes[:, 1].div(TILE, rounding_mode="floor") - tile_x0 + 1
@@ -240,72 +245,62 @@ def bin_footprints(packed: torch.Tensor, tiles_x: int, tiles_y: int) -> tuple[to
     return offsets, rows.index_select(0, slot_of).int(), slot_of, first_slot, n_slots
 
 
-class TritonRasterize(torch.autograd.Function):
-    """(M, 2) means2d, (M, 3) conics, (M,) opacities, (M, 4) features -> (H, W, 4) weighted feature sums and (H, W)
-    accumulation, differentiable in the four inputs. The last feature is the depth the footprints are ordered by;
-    ``boxes`` (M, 4) are their pixel boxes; ``absgrad`` (M, 2) or None, what the backward pass fills with the absolute
-    screen-space gradients (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
+def forward(means2d, conics, opacities, features, boxes, height: int, width: int):
+    """The forward kernel (:class:`~nerf_lightning.splats.rasterize_core.TileKernels`): CUDA tensors (CPU ones in
+    Triton's interpreter) -> shaded (H, W, 4), accumulation (H, W), and what :func:`backward` needs."""
+    composite, _, _ = kernels(features.device.type)
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    order = torch.sort(features[:, -1], stable=True).indices  # nearest first, ties by index
+    # float32, or float64 where given: a footprint from a bf16 or fp16 projection (autocast's matrix products) is
+    # drawn in float32, and autograd gives its gradient back in its own dtype
+    dtype = torch.float64 if features.dtype == torch.float64 else torch.float32
+    columns = {MEANS2D_COLUMN: means2d, CONIC_COLUMN: conics, OPACITY_COLUMN: opacities[:, None],
+               FADE_COLUMN: features.new_zeros(len(features), 1), FEATURE_COLUMN: features, BOX_COLUMN: boxes,
+               BOX_COLUMN + 4: features.new_zeros(len(features), PACKED - BOX_COLUMN - 4)}  # the fade limit: unread
+    packed = torch.cat([columns[column].to(dtype) for column in sorted(columns)], dim=-1).index_select(0, order)
+    packed = packed.contiguous()
+    offsets, entries, slot_of, first_slot, n_slots = bin_footprints(packed, tiles_x, tiles_y)
+    n_pixels = height * width
+    shaded = packed.new_empty(n_pixels, FEATURES)
+    accumulation = packed.new_empty(n_pixels)
+    transmittance = torch.empty(n_pixels, dtype=torch.float64, device=features.device)
+    stop = torch.empty(n_pixels, dtype=torch.long, device=features.device)
+    if len(entries) == 0:  # nothing drawn (and no kernel handed an empty tensor's null pointer)
+        shaded.zero_()
+        accumulation.zero_()
+        transmittance.fill_(1.0)
+        stop.zero_()
+    else:
+        composite[(tiles_x * tiles_y,)](packed, offsets, entries, height, width, tiles_x, shaded, accumulation,
+                                        transmittance, stop, TILE=TILE, PACKED=PACKED, MAX_ALPHA=MAX_ALPHA,
+                                        MIN_ALPHA=MIN_ALPHA, MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
+    saved = (order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop, height, width, tiles_x, tiles_y)
+    return shaded.reshape(height, width, FEATURES), accumulation.reshape(height, width), saved
 
-    @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, boxes, height: int, width: int, absgrad=None):
-        if features.ndim != 2 or features.shape[1] != FEATURES:
-            raise ValueError(f"TritonRasterize draws (M, {FEATURES}) features (colour and depth), got {tuple(features.shape)}")
-        composite, _, _ = kernels(features.device.type)
-        tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-        order = torch.sort(features[:, -1], stable=True).indices  # nearest first, ties by index
-        # float32, or float64 where given: a footprint from a bf16 or fp16 projection (autocast's matrix products) is
-        # drawn in float32, and autograd gives its gradient back in its own dtype
-        dtype = torch.float64 if features.dtype == torch.float64 else torch.float32
-        packed = torch.cat([means2d.to(dtype), conics.to(dtype), opacities.to(dtype)[:, None], features.to(dtype),
-                            boxes.to(dtype), features.new_zeros(len(features), PACKED - 14, dtype=dtype)],
-                           dim=-1).index_select(0, order)
-        packed = packed.contiguous()
-        offsets, entries, slot_of, first_slot, n_slots = bin_footprints(packed, tiles_x, tiles_y)
-        n_pixels = height * width
-        shaded = packed.new_empty(n_pixels, FEATURES)
-        accumulation = packed.new_empty(n_pixels)
-        transmittance = torch.empty(n_pixels, dtype=torch.float64, device=features.device)
-        stop = torch.empty(n_pixels, dtype=torch.long, device=features.device)
-        if len(entries) == 0:  # nothing drawn (and no kernel handed an empty tensor's null pointer)
-            shaded.zero_()
-            accumulation.zero_()
-            transmittance.fill_(1.0)
-            stop.zero_()
-        else:
-            composite[(tiles_x * tiles_y,)](packed, offsets, entries, height, width, tiles_x, shaded, accumulation,
-                                            transmittance, stop, TILE=TILE, PACKED=PACKED, MAX_ALPHA=MAX_ALPHA,
-                                            MIN_ALPHA=MIN_ALPHA, MIN_TRANSMITTANCE=MIN_TRANSMITTANCE, num_warps=8)
-        ctx.save_for_backward(order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop)
-        ctx.size = (height, width, tiles_x, tiles_y)
-        ctx.absgrad = absgrad
-        return shaded.reshape(height, width, FEATURES), accumulation.reshape(height, width)
 
-    @staticmethod
-    def backward(ctx, grad_shaded, grad_accumulation):
-        order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop = ctx.saved_tensors
-        height, width, tiles_x, tiles_y = ctx.size
-        _, composite_backward, sum_slots = kernels(packed.device.type)
-        dtype = packed.dtype
-        grad_shaded = packed.new_zeros(height * width, FEATURES) if grad_shaded is None else \
-            grad_shaded.to(dtype).reshape(-1, FEATURES).contiguous()
-        grad_accumulation = packed.new_zeros(height * width) if grad_accumulation is None else \
-            grad_accumulation.to(dtype).reshape(-1).contiguous()
-        n_footprints = len(order)
-        if len(entries) == 0:
-            zeros = packed.new_zeros(n_footprints, GRADIENTS)
-            return zeros[:, 0:2], zeros[:, 2:5], zeros[:, 5], zeros[:, 6:10], None, None, None, None
-        slot_grads = packed.new_zeros(len(entries), GRADIENTS)
-        composite_backward[(tiles_x * tiles_y,)](packed, offsets, entries, slot_of, height, width, tiles_x,
-                                                 transmittance, stop, grad_shaded, grad_accumulation, slot_grads,
-                                                 TILE=TILE, PACKED=PACKED, GRADIENTS=GRADIENTS, MAX_ALPHA=MAX_ALPHA,
-                                                 MIN_ALPHA=MIN_ALPHA, num_warps=8)
-        drawn_order = packed.new_empty(n_footprints, GRADIENTS)
-        sum_slots[(triton.cdiv(n_footprints, SUM_BLOCK),)](slot_grads, first_slot, n_slots, drawn_order, n_footprints,
-                                                           BLOCK=SUM_BLOCK, GRADIENTS=GRADIENTS)
-        grads = torch.empty_like(drawn_order).index_copy_(0, order, drawn_order)  # back to the footprints' order
-        if ctx.absgrad is not None:
-            ctx.absgrad.add_(grads[:, 10:12])  # added, as the gradients are, should the graph be walked again
-        return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:10], None, None, None, None
+def backward(saved, grad_shaded: torch.Tensor, grad_accumulation: torch.Tensor) -> torch.Tensor:
+    """The backward kernel: the loss's gradients of :func:`forward`'s outputs -> (M, GRADIENTS) in the footprints'
+    order, in the dtype they were drawn in."""
+    order, packed, offsets, entries, slot_of, first_slot, n_slots, transmittance, stop, height, width, tiles_x, tiles_y = saved
+    _, composite_backward, sum_slots = kernels(packed.device.type)
+    dtype = packed.dtype
+    grad_shaded = grad_shaded.to(dtype).reshape(-1, FEATURES).contiguous()
+    grad_accumulation = grad_accumulation.to(dtype).reshape(-1).contiguous()
+    n_footprints = len(order)
+    if len(entries) == 0:
+        return packed.new_zeros(n_footprints, GRADIENTS)
+    slot_grads = packed.new_zeros(len(entries), GRADIENTS)
+    composite_backward[(tiles_x * tiles_y,)](packed, offsets, entries, slot_of, height, width, tiles_x,
+                                             transmittance, stop, grad_shaded, grad_accumulation, slot_grads,
+                                             TILE=TILE, PACKED=PACKED, GRADIENTS=GRADIENTS, MAX_ALPHA=MAX_ALPHA,
+                                             MIN_ALPHA=MIN_ALPHA, num_warps=8)
+    drawn_order = packed.new_empty(n_footprints, GRADIENTS)
+    sum_slots[(triton.cdiv(n_footprints, SUM_BLOCK),)](slot_grads, first_slot, n_slots, drawn_order, n_footprints,
+                                                       BLOCK=SUM_BLOCK, GRADIENTS=GRADIENTS)
+    return torch.empty_like(drawn_order).index_copy_(0, order, drawn_order)  # back to the footprints' order
+
+
+TRITON_TILES = TileKernels("Triton tile", forward, backward)
 
 
 def rasterize_triton(projection: Projection, colours: torch.Tensor, height: int, width: int,
@@ -313,5 +308,5 @@ def rasterize_triton(projection: Projection, colours: torch.Tensor, height: int,
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). CUDA tensors (CPU ones in Triton's interpreter);
     differentiable in the footprints and colours (and the background); with ``absgrad``, the backward pass fills
-    ``projection.means2d.absgrad`` (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
-    return composite_features(TritonRasterize.apply, projection, colours, height, width, background, absgrad)
+    ``projection.means2d.absgrad`` (:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`)."""
+    return composite_features(TRITON_TILES, projection, colours, height, width, background, absgrad)

@@ -314,7 +314,7 @@ def test_splats_train_and_draw_on_the_cpus_tiles_where_auto_would_pick_an_apple_
     from nerf_lightning.checkpoints import load_model
     from nerf_lightning.models.radiance_field import RadianceFieldModule
     from nerf_lightning.models.splat import SplatModule
-    from nerf_lightning.splats.rasterizers import device_for_splats
+    from nerf_lightning.splats.draw import device_for_splats
     from nerf_lightning.training.run import accelerator_for
 
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
@@ -322,7 +322,7 @@ def test_splats_train_and_draw_on_the_cpus_tiles_where_auto_would_pick_an_apple_
     train(cfg)  # on this machine's CPU, before the Apple GPU is faked
     monkeypatch.setattr(torch.backends.mps, "is_available", lambda: True)  # a Mac: auto is its Apple GPU
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with caplog.at_level("WARNING", logger="nerf_lightning.splats.rasterizers"):
+    with caplog.at_level("WARNING", logger="nerf_lightning.splats.draw"):
         assert device_for_splats("mps", asked=False) == torch.device("cpu")
     assert sum("not this Apple GPU" in record.getMessage() for record in caplog.records) == 1
     assert device_for_splats("mps", asked=True) == torch.device("mps")  # asked for by name: it gets it

@@ -12,10 +12,10 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from nerf_lightning.data.scene import Views
 from nerf_lightning.splats.gaussians import transform_gaussians
 from nerf_lightning.splats.projection import project
-from nerf_lightning.splats.rasterize import rasterize
+from nerf_lightning.splats.rasterize_pairs import rasterize_pairs
 from nerf_lightning.splats.sh import rotate_sh, spherical_harmonics
 from nerf_lightning.splats.start import points_seen_by_views
-from tests.splats.test_rasterize import HEIGHT, WIDTH, camera
+from tests.splats.test_rasterize_pairs import HEIGHT, WIDTH, camera
 
 
 def similarity(scale: float = 0.37) -> torch.Tensor:
@@ -37,7 +37,7 @@ def picture(g: dict[str, torch.Tensor], K: torch.Tensor, c2w: torch.Tensor) -> d
     projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K, c2w, HEIGHT, WIDTH)
     coefficients = torch.cat([g["sh0"], g["shN"]], dim=1)[projection.ids]
     colours = spherical_harmonics(3, coefficients, g["means"][projection.ids] - c2w[:3, 3])
-    return rasterize(projection, colours, HEIGHT, WIDTH, torch.tensor([0.1, 0.2, 0.3]))
+    return rasterize_pairs(projection, colours, HEIGHT, WIDTH, torch.tensor([0.1, 0.2, 0.3]))
 
 
 def test_gaussians_moved_with_the_camera_draw_the_same_picture():

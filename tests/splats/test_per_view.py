@@ -20,9 +20,10 @@ from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.models.splat import SplatModule
 from nerf_lightning.parameters.exposure import ViewExposure
 from nerf_lightning.splats.appearance import ViewColourAffine
+from nerf_lightning.splats.draw import PairsRasterizer
 from nerf_lightning.splats.gaussians import Gaussians
 from nerf_lightning.splats.projection import project
-from nerf_lightning.splats.rasterize_dense import rasterize_dense
+from nerf_lightning.splats.rasterize_reference import rasterize_reference
 from nerf_lightning.splats.sh import rgb_to_sh
 from nerf_lightning.training import train
 
@@ -44,7 +45,7 @@ def tiny_model(appearance: ViewColourAffine | ViewExposure | None = None, refine
     """400 nearly opaque Gaussians of random colours on the unit sphere (they cover every pixel of the arc's views,
     as a real capture's scene does), drawn by the pairs rasteriser; the log a no-op (no trainer)."""
     model = SplatModule(Gaussians(sh_degree=0, initial_opacity=0.9), partial(torch.optim.Adam, eps=1e-15), RATES,
-                        rasterizer="pairs", appearance=appearance, camera_refinement=refinement)
+                        rasterizer=PairsRasterizer(), appearance=appearance, camera_refinement=refinement)
     model.log = lambda *args, **kwargs: None
     model.use_space(SceneSpace())
     generator = torch.Generator().manual_seed(0)
@@ -126,9 +127,9 @@ def test_a_row_is_an_affine_map_of_the_gaussians_colours_and_leaves_the_backgrou
     c2w = arc_cameras(1)[0]
     background = torch.tensor([0.9, 0.1, 0.4])
     projection = project(means, quats, log_scales, opacities, K, c2w, SIZE, SIZE)
-    drawn = rasterize_dense(projection, colours[projection.ids], SIZE, SIZE, background)
+    drawn = rasterize_reference(projection, colours[projection.ids], SIZE, SIZE, background)
     assert drawn["accumulation"].min() < 0.05 and drawn["accumulation"].max() > 0.5  # background and Gaussians both seen
-    transformed = rasterize_dense(projection, (colours @ matrix.T + bias)[projection.ids], SIZE, SIZE, background)
+    transformed = rasterize_reference(projection, (colours @ matrix.T + bias)[projection.ids], SIZE, SIZE, background)
     torch.testing.assert_close(affine(drawn["rgb"], torch.tensor(1), drawn["accumulation"], background), transformed["rgb"],
                                atol=1e-5, rtol=1e-5)
 

@@ -30,7 +30,7 @@ from nerf_lightning.models.splat import SplatModule
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.loss import SplatLoss
 from nerf_lightning.splats.projection import LOW_PASS, MAX_SIGMAS, MIN_ALPHA, NEAR_PLANE, pixel_ray_lengths, project
-from nerf_lightning.splats.rasterizers import choose_rasterizer
+from nerf_lightning.splats.draw import RASTERIZERS
 from nerf_lightning.splats.sh import rgb_to_sh
 from nerf_lightning.splats.strategy import DefaultStrategy
 
@@ -335,8 +335,8 @@ def splat_model(means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tens
     for name in PARAMETERS:
         setattr(gaussians, name, nn.Parameter(values[name].float().clone()))
     model = SplatModule(gaussians, optimizer=functools.partial(torch.optim.Adam), learning_rates=dict.fromkeys(PARAMETERS, 1e-3),
-                        strategy=DefaultStrategy(absgrad=absgrad), loss=SplatLoss(ssim_weight=0.0), rasterizer=rasterizer)
-    assert choose_rasterizer("cpu", rasterizer) == rasterizer, f"the {rasterizer} rasteriser is not what draws here"
+                        strategy=DefaultStrategy(absgrad=absgrad), loss=SplatLoss(ssim_weight=0.0), rasterizer=RASTERIZERS[rasterizer]())
+    assert model.drawer().name == rasterizer, f"the {rasterizer} rasteriser is not what draws here"
     model.use_space(SceneSpace(background=(0.05, 0.1, 0.15)))
     model.view_size = (VIEW_H, VIEW_W)
     return model

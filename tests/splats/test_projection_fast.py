@@ -12,7 +12,7 @@ import torch
 from nerf_lightning.splats.projection import project
 from nerf_lightning.splats.projection_fast import project_and_shade
 from nerf_lightning.splats.sh import spherical_harmonics
-from tests.splats.test_rasterize import camera
+from tests.splats.test_rasterize_pairs import camera
 
 HEIGHT, WIDTH = 37, 53
 

@@ -1,23 +1,21 @@
 """The tile rasterisers, numba's on the CPU and Triton's (on a GPU where there is one, else in Triton's interpreter;
 skipped without Triton), against the dense reference, in values and gradients, on random scenes, an empty view,
 footprints across tile and image borders, pixels that stop early, crowded tiles, antialiasing, masks and patches; the
-numba rasteriser's gradients the same bit for bit on a second run; the fallback to PyTorch without numba."""
+numba rasteriser's gradients the same bit for bit on a second run."""
 
 from __future__ import annotations
 
 import importlib.util
-import warnings
 
 import numpy as np
 import pytest
 import torch
 
-from nerf_lightning.splats import rasterizers
 from nerf_lightning.splats.projection import Projection, project
-from nerf_lightning.splats.rasterize import rasterize
-from nerf_lightning.splats.rasterize_dense import rasterize_dense
+from nerf_lightning.splats.rasterize_pairs import rasterize_pairs
+from nerf_lightning.splats.rasterize_reference import rasterize_reference
 from nerf_lightning.splats.rasterize_tiles import TILE, depth_keys, fade, nearest_first, rasterize_tiles
-from tests.splats.test_rasterize import camera, gaussians
+from tests.splats.test_rasterize_pairs import camera, gaussians
 
 BACKGROUND = torch.tensor([0.2, 0.4, 0.9])
 # where Triton's kernels run in the tests: the GPU, else its interpreter on the CPU (tests/conftest.py asks for it)
@@ -61,7 +59,7 @@ def assert_equal_to_dense(g: dict[str, torch.Tensor], height: int, width: int, a
     """Values and the gradients of one loss over rgb, accumulation and depth, and the footprints' absolute
     screen-space gradients (``means2d.absgrad``), ``rasteriser`` (the tiles) against dense, to 1e-5."""
     tiles = drawn(g, rasteriser, height, width, antialiased, K, absgrad=True)
-    dense = drawn(g, rasterize_dense, height, width, antialiased, K, absgrad=True)
+    dense = drawn(g, rasterize_reference, height, width, antialiased, K, absgrad=True)
     for key in ("rgb", "accumulation"):
         torch.testing.assert_close(tiles[key], dense[key], atol=1e-5, rtol=1e-5)
     covered = dense["accumulation"] > 1e-3
@@ -127,7 +125,7 @@ def stack(n: int, opacity: float, spread: float = 0.0, seed: int = 0) -> Project
 def assert_projection_gradients_equal(projection: Projection, colours: torch.Tensor, height: int = 20, width: int = 24,
                                       rasteriser=rasterize_tiles) -> dict:
     out = {}
-    for name, rasteriser in (("tiles", rasteriser), ("dense", rasterize_dense)):
+    for name, rasteriser in (("tiles", rasteriser), ("dense", rasterize_reference)):
         drawn_out = rasteriser(projection, colours, height, width, BACKGROUND, absgrad=True)
         loss = drawn_out["rgb"].sum() + 0.5 * drawn_out["accumulation"].sum() + 0.1 * drawn_out["depth"].sum()
         inputs = [projection.means2d, projection.conics, projection.opacities, projection.depths, colours]
@@ -185,71 +183,7 @@ def test_float64_inputs_are_drawn_in_float64():
     projection = project(g["means"], g["quats"], g["log_scales"], torch.sigmoid(g["opacity_logits"]), K.double(), c2w.double(), 20, 24)
     out = rasterize_tiles(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
     assert out["rgb"].dtype == torch.float64
-    torch.testing.assert_close(out["rgb"], rasterize(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())["rgb"])
-
-
-def test_auto_takes_tiles_on_a_cpu_triton_on_cuda_and_pytorch_elsewhere(monkeypatch):
-    assert rasterizers.choose_rasterizer("cpu") == "tiles"
-    assert rasterizers.choose_rasterizer("mps") == rasterizers.choose_rasterizer("mps", "tiles") == "pairs"
-    assert rasterizers.choose_rasterizer("cpu", "pairs") == "pairs"
-    monkeypatch.setattr(rasterizers, "_triton_ready", True)
-    assert rasterizers.choose_rasterizer("cuda") == rasterizers.choose_rasterizer("cuda", "tiles") == "triton"
-    assert rasterizers.choose_rasterizer("cuda", "pairs") == "pairs"
-    monkeypatch.setattr(rasterizers, "_triton_ready", False)  # Triton missing or failing there: PyTorch draws
-    assert rasterizers.choose_rasterizer("cuda") == "pairs"
-    with pytest.raises(ValueError, match="model.rasterizer must be one of auto, tiles, pairs"):
-        rasterizers.choose_rasterizer("cpu", "numba")
-
-
-@pytest.mark.parametrize("mode", [torch.no_grad, torch.inference_mode])
-def test_auto_takes_tiles_where_the_first_view_is_drawn_without_gradients(mode, monkeypatch):
-    """nerf-render, nerf-eval and the viewer draw their first view under no_grad (render_view) or inference_mode: the
-    probe's backward pass must not fail there and send the whole process to the PyTorch rasteriser."""
-    monkeypatch.setattr(rasterizers, "_tiles_ready", None)
-    monkeypatch.setattr(rasterizers, "_tiles", None)
-    g = {key: value.detach() for key, value in gaussians(seed=11).items()}
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        with mode():
-            assert rasterizers.choose_rasterizer("cpu") == "tiles"
-            out = drawn(g, lambda *args: rasterizers.rasterize_view(*args), 20, 24)
-    torch.testing.assert_close(out["rgb"], drawn(g, rasterize_dense, 20, 24)["rgb"], atol=1e-5, rtol=1e-5)
-
-
-def test_without_numba_one_warning_then_the_pytorch_rasteriser(monkeypatch):
-    import builtins
-
-    real_import = builtins.__import__
-
-    def no_numba(name, *args, **kwargs):
-        if name == "numba" or name.startswith("numba."):
-            raise ImportError("No module named 'numba'")
-        return real_import(name, *args, **kwargs)
-
-    monkeypatch.setattr(rasterizers, "_tiles_ready", None)
-    monkeypatch.setattr(rasterizers, "_tiles", None)
-    monkeypatch.delitem(__import__("sys").modules, "nerf_lightning.splats.rasterize_tiles")
-    monkeypatch.delattr(__import__("nerf_lightning.splats").splats, "rasterize_tiles")
-    monkeypatch.setattr(builtins, "__import__", no_numba)
-    g = gaussians(seed=10)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        out = drawn(g, lambda *args: rasterizers.rasterize_view(*args), 20, 24)
-        drawn(g, lambda *args: rasterizers.rasterize_view(*args), 20, 24)
-    said = [w for w in caught if "tile rasteriser is unavailable" in str(w.message)]
-    assert len(said) == 1 and "pip install numba" in str(said[0].message)
-    torch.testing.assert_close(out["rgb"], drawn(g, rasterize_dense, 20, 24)["rgb"], atol=1e-5, rtol=1e-5)
-
-
-@pytest.mark.skipif(torch.cuda.is_available(), reason="where CUDA is, the GPU tile rasteriser may run")
-def test_on_cuda_without_a_gpu_rasteriser_one_warning_then_the_pytorch_rasteriser(monkeypatch):
-    monkeypatch.setattr(rasterizers, "_triton_ready", None)
-    monkeypatch.setattr(rasterizers, "_triton", None)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        assert rasterizers.choose_rasterizer("cuda") == rasterizers.choose_rasterizer("cuda", "tiles") == "pairs"
-    said = [w for w in caught if "GPU tile rasteriser is unavailable" in str(w.message)]
-    assert len(said) == 1
+    torch.testing.assert_close(out["rgb"], rasterize_pairs(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())["rgb"])
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -268,11 +202,11 @@ def test_the_fall_off_is_exp_where_the_loops_ask_it() -> None:
     sigmas = np.linspace(0.0, 6.0, 100_001)
     fades = np.array([fade(sigma) for sigma in sigmas[::97]])
     np.testing.assert_allclose(fades, np.exp(-sigmas[::97]), rtol=1e-8, atol=0.0)
-    # past the table (an opacity over 1 given to TileRasterize) it stays on it; a NaN sigma gives NaN, as exp does
+    # past the table (an opacity over 1 given to the tile kernels) it stays on it; a NaN sigma gives NaN, as exp does
     assert 0.0 <= fade(100.0) < 1e-3 and np.isnan(fade(float("nan")))
 
 
-@pytest.mark.parametrize("rasteriser", [rasterize_tiles, rasterize], ids=["numba", "pairs"])
+@pytest.mark.parametrize("rasteriser", [rasterize_tiles, rasterize_pairs], ids=["numba", "pairs"])
 def test_absgrad_adds_up_over_backward_passes_as_gradients_do(rasteriser):
     g = gaussians(seed=11)
     out = drawn(g, rasteriser, 20, 24, absgrad=True)
@@ -286,7 +220,7 @@ def test_absgrad_adds_up_over_backward_passes_as_gradients_do(rasteriser):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_numba_pixel_boxes_are_the_references_to_the_pixel(dtype):
-    from nerf_lightning.splats.rasterize import pixel_boxes
+    from nerf_lightning.splats.rasterize_core import pixel_boxes
     from nerf_lightning.splats.rasterize_tiles import pixel_boxes as pixel_boxes_fast
 
     generator = torch.Generator().manual_seed(0)

@@ -11,9 +11,9 @@ import torch
 triton = pytest.importorskip("triton")
 
 from nerf_lightning.splats.projection import Projection, project  # noqa: E402
-from nerf_lightning.splats.rasterize_dense import rasterize_dense  # noqa: E402
+from nerf_lightning.splats.rasterize_reference import rasterize_reference  # noqa: E402
 from nerf_lightning.splats.rasterize_triton import rasterize_triton  # noqa: E402
-from tests.splats.test_rasterize import camera, gaussians  # noqa: E402
+from tests.splats.test_rasterize_pairs import camera, gaussians  # noqa: E402
 from tests.splats.test_rasterize_tiles import BACKGROUND, TRITON_DEVICE as DEVICE, rasterize_triton_here  # noqa: E402
 
 
@@ -61,7 +61,7 @@ def test_float64_inputs_are_drawn_in_float64():
                          c2w.double(), 20, 24)
     out = rasterize_triton_here(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
     assert out["rgb"].dtype == torch.float64
-    reference = rasterize_dense(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
+    reference = rasterize_reference(projection, g["colours"][projection.ids], 20, 24, BACKGROUND.double())
     torch.testing.assert_close(out["rgb"], reference["rgb"], atol=1e-10, rtol=1e-10)
 
 

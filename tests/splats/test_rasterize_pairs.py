@@ -10,8 +10,9 @@ import torch
 from kornia.geometry.camera.perspective import project_points
 
 from nerf_lightning.splats.projection import MIN_ALPHA, project
-from nerf_lightning.splats.rasterize import drawn_pairs, footprint_table, pixel_boxes, rasterize, row_bands
-from nerf_lightning.splats.rasterize_dense import rasterize_dense
+from nerf_lightning.splats.rasterize_core import pixel_boxes
+from nerf_lightning.splats.rasterize_pairs import drawn_pairs, footprint_table, rasterize_pairs, row_bands
+from nerf_lightning.splats.rasterize_reference import rasterize_reference
 from nerf_lightning.splats.sh import SH_C0, rgb_to_sh, spherical_harmonics
 from tests.test_devices_and_precision import NoFloat64
 
@@ -53,7 +54,7 @@ def draw(g: dict[str, torch.Tensor], rasteriser, antialiased: bool = False, **op
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_rasteriser_equals_the_dense_reference_in_values_and_gradients(seed, antialiased):
     g = gaussians(seed=seed)
-    fast, dense = draw(g, rasterize, antialiased, absgrad=True), draw(g, rasterize_dense, antialiased, absgrad=True)
+    fast, dense = draw(g, rasterize_pairs, antialiased, absgrad=True), draw(g, rasterize_reference, antialiased, absgrad=True)
     for key in ("rgb", "accumulation"):
         torch.testing.assert_close(fast[key], dense[key], atol=1e-5, rtol=1e-5)
     drawn = dense["accumulation"] > 1e-3
@@ -94,7 +95,7 @@ def test_the_pairs_are_the_pixels_the_reference_draws():
 
 def test_bands_within_a_pair_budget_draw_the_same_image():
     g = gaussians(seed=4)
-    whole, banded = draw(g, rasterize, absgrad=True), draw(g, rasterize, max_pairs=300, absgrad=True)
+    whole, banded = draw(g, rasterize_pairs, absgrad=True), draw(g, rasterize_pairs, max_pairs=300, absgrad=True)
     for key in ("rgb", "depth", "accumulation"):
         torch.testing.assert_close(whole[key], banded[key], atol=1e-6, rtol=1e-6)
     for out in (whole, banded):
@@ -135,7 +136,7 @@ def test_an_opaque_stack_stops_a_pixel_and_the_background_shows_through_what_is_
     K, c2w = camera()
     K[0, 2], K[1, 2] = 12.5, 10.5  # the means project onto the centre of pixel (10, 12)
     projection = project(means, quats, log_scales, opacities, K, c2w, HEIGHT, WIDTH)
-    out = rasterize(projection, colours[projection.ids], HEIGHT, WIDTH, torch.ones(3))
+    out = rasterize_pairs(projection, colours[projection.ids], HEIGHT, WIDTH, torch.ones(3))
     left = 0.05**3
     torch.testing.assert_close(out["rgb"][10, 12], torch.tensor([0.95 + left, left, left]), atol=1e-6, rtol=0)
     torch.testing.assert_close(out["accumulation"][10, 12], torch.tensor(1.0 - left), atol=1e-6, rtol=0)
@@ -145,7 +146,7 @@ def test_an_opaque_stack_stops_a_pixel_and_the_background_shows_through_what_is_
 def test_no_float64_anywhere_in_a_forward_and_backward():
     g = gaussians(seed=6)
     with NoFloat64():
-        out = draw(g, rasterize)
+        out = draw(g, rasterize_pairs)
         (out["rgb"].sum() + out["depth"].sum()).backward()
 
 

@@ -1,17 +1,17 @@
-"""The rasteriser: footprints to pixels through (footprint, pixel) pairs, in plain PyTorch on every device.
+"""The pairs rasteriser: footprints to pixels through (footprint, pixel) pairs, in plain PyTorch on every device.
 
-The same values as :func:`~nerf_lightning.splats.rasterize_dense.rasterize_dense` (the tests hold them equal), but
-only where a footprint can be drawn: each footprint lists the pixels of its box (``repeat_interleave``, no loop over
-footprints), the pairs too faint are dropped, one sort orders the rest by pixel and then by depth, and
+The same values as :func:`~nerf_lightning.splats.rasterize_reference.rasterize_reference` (the tests hold them
+equal), but only where a footprint can be drawn: each footprint lists the pixels of its box (``repeat_interleave``,
+no loop over footprints), the pairs too faint are dropped, one sort orders the rest by pixel and then by depth, and
 :func:`~nerf_lightning.rendering.compositing.weights_from_alpha_packed` composites each pixel's pairs front to back,
 as the NeRF renderers composite a ray's samples (a pixel is a ray whose samples are footprints).
 
 Memory grows with the pairs, about 100 bytes each with gradients: a view whose pairs exceed ``max_pairs`` is drawn in
 bands of rows, each within the budget (a single row over it is drawn alone).
 
-Asked with ``absgrad=True``, every rasteriser's backward pass also leaves ``means2d.absgrad`` (:func:`keep_absgrad`):
-for each footprint, the sum over its pixels of the absolute value of each pixel's pull on its centre (AbsGS's
-densification statistic, which a strategy asks for).
+Asked with ``absgrad=True``, every rasteriser's backward pass also leaves ``means2d.absgrad``
+(:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`): for each footprint, the sum over its pixels of the
+absolute value of each pixel's pull on its centre (AbsGS's densification statistic, which a strategy asks for).
 """
 
 from __future__ import annotations
@@ -20,20 +20,10 @@ import torch
 
 from nerf_lightning.rendering.compositing import weights_from_alpha_packed
 from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
+from nerf_lightning.splats.rasterize_core import keep_absgrad, pixel_boxes, shaded_view
 
 # pairs drawn at once: about 0.4 GB with gradients (the budget a view's bands are cut to)
 MAX_PAIRS = 4_000_000
-
-
-def pixel_boxes(projection: Projection, height: int, width: int) -> torch.Tensor:
-    """(M, 4) long first and last column, first and last row of the pixels whose centres lie in each footprint's box
-    (a last before a first: none)."""
-    means2d, extents = projection.means2d.detach(), projection.extents.detach()
-    low = torch.ceil(means2d - extents - 0.5).long()
-    high = torch.floor(means2d + extents - 0.5).long()
-    first = torch.stack([low[:, 0].clamp(0, width), low[:, 1].clamp(0, height)], dim=-1)
-    last = torch.stack([high[:, 0].clamp(-1, width - 1), high[:, 1].clamp(-1, height - 1)], dim=-1)
-    return torch.stack([first[:, 0], last[:, 0], first[:, 1], last[:, 1]], dim=-1)
 
 
 def row_bands(boxes: torch.Tensor, height: int, max_pairs: int) -> list[tuple[int, int]]:
@@ -55,23 +45,13 @@ def row_bands(boxes: torch.Tensor, height: int, max_pairs: int) -> list[tuple[in
     return bands
 
 
-def keep_absgrad(means2d: torch.Tensor, wanted: bool = True) -> torch.Tensor | None:
-    """Zeros (M, 2), kept as ``means2d.absgrad`` for the backward pass to fill with each footprint's absolute
-    screen-space gradient: the sum over its pixels of |d loss / d sigma_p x d sigma_p / d means2d|, each pixel's pull
-    taken alone, so that opposite pulls do not cancel (AbsGS; gsplat's ``absgrad``; a strategy may read it). None,
-    and nothing kept, where not ``wanted`` or where no gradient will reach ``means2d`` (M, 2)."""
-    if not (wanted and torch.is_grad_enabled() and means2d.requires_grad):
-        return None
-    means2d.absgrad = torch.zeros(means2d.shape, dtype=torch.promote_types(means2d.dtype, torch.float32), device=means2d.device)
-    return means2d.absgrad
-
-
-def rasterize(projection: Projection, colours: torch.Tensor, height: int, width: int, background: torch.Tensor,
-              max_pairs: int = MAX_PAIRS, absgrad: bool = False) -> dict[str, torch.Tensor]:
+def rasterize_pairs(projection: Projection, colours: torch.Tensor, height: int, width: int, background: torch.Tensor,
+                    max_pairs: int = MAX_PAIRS, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, the weights' mean where
     something is drawn), accumulation (H, W); ``background`` (3,). Differentiable in the footprints and colours; with
-    ``absgrad``, the backward pass fills ``projection.means2d.absgrad`` (:func:`keep_absgrad`: here about a tenth more
-    time a step, for the pairs' own pulls)."""
+    ``absgrad``, the backward pass fills ``projection.means2d.absgrad``
+    (:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`: here about a tenth more time a step, for the pairs'
+    own pulls)."""
     absgrad = keep_absgrad(projection.means2d, absgrad)
     # footprints nearest first: pairs are listed footprint by footprint, so one stable sort by pixel leaves every
     # pixel's pairs nearest first (ties by the footprints' order)
@@ -97,30 +77,6 @@ def rasterize(projection: Projection, colours: torch.Tensor, height: int, width:
     return shaded_view(shaded.reshape(height, width, 4), accumulation.reshape(height, width), background)
 
 
-def shaded_view(shaded: torch.Tensor, accumulation: torch.Tensor, background: torch.Tensor) -> dict[str, torch.Tensor]:
-    """A view from its pixels' weighted sums of colour and depth, shaded (H, W, 4), and accumulation (H, W): rgb
-    (H, W, 3) over ``background`` (3,) by what transmittance is left, depth (H, W) the weights' mean where something
-    is drawn, and the accumulation. The last step of every rasteriser."""
-    rgb = shaded[..., :3] + (1.0 - accumulation)[..., None] * background
-    depth = shaded[..., 3] / accumulation.clamp(min=1e-10)
-    return {"rgb": rgb, "depth": depth, "accumulation": accumulation}
-
-
-def composite_features(composite, projection: Projection, colours: torch.Tensor, height: int, width: int,
-                       background: torch.Tensor, absgrad: bool = False, boxes=pixel_boxes) -> dict[str, torch.Tensor]:
-    """Draw a view with a tile rasteriser's autograd function ``composite`` (``TileRasterize.apply``,
-    ``TritonRasterize.apply``: means2d, conics, opacities, (M, 4) features, (M, 4) pixel boxes, height, width, and
-    the (M, 2) tensor its backward pass fills with the absolute screen-space gradients or None (:func:`keep_absgrad`)
-    -> shaded (H, W, 4), accumulation (H, W)), the footprints' features their colours and their depth (the last,
-    which orders them); then :func:`shaded_view`. With ``absgrad``, ``projection.means2d.absgrad`` is kept.
-    ``boxes`` is what gives the pixel boxes, :func:`pixel_boxes` or a fast path's equal of it."""
-    features = torch.cat([colours, projection.depths[:, None].to(colours.dtype)], dim=-1)  # (M, 4): rgb, z (sorted by)
-    shaded, accumulation = composite(projection.means2d, projection.conics, projection.opacities, features,
-                                     boxes(projection, height, width),
-                                     height, width, keep_absgrad(projection.means2d, absgrad))
-    return shaded_view(shaded, accumulation, background)
-
-
 def footprint_table(projection: Projection) -> torch.Tensor:
     """(M, 6) what a pair needs of its footprint, in one row so that one gather fetches it: the centre (u, v), the
     conic (a, b, c) and the opacity."""
@@ -133,14 +89,16 @@ def drawn_pairs(footprints: torch.Tensor, boxes: torch.Tensor, start: int, stop:
     (P,) int32 footprint indices, (P,) int32 pixel indices (row * W + column) and (P,) alphas,
     min(0.999, o exp(-sigma)), the pixels of each footprint's box where the alpha is at least 1/255.
 
-    ``footprints`` (M, 6) is :func:`footprint_table`, ``boxes`` (M, 4) :func:`pixel_boxes`. The pairs are listed in
-    two steps, each a ``repeat_interleave``: every footprint's rows within its box (a span), then the columns of each
-    span where the footprint is drawn. Along a span dy is fixed and sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is a
-    quadratic in dx, so those columns are the interval where sigma <= log(255 o), solved for once a span: no pair is
-    listed only to be dropped.
+    ``footprints`` (M, 6) is :func:`footprint_table`, ``boxes`` (M, 4)
+    :func:`~nerf_lightning.splats.rasterize_core.pixel_boxes`. The pairs are listed in two steps, each a
+    ``repeat_interleave``: every footprint's rows within its box (a span), then the columns of each span where the
+    footprint is drawn. Along a span dy is fixed and sigma = 0.5 (a dx^2 + c dy^2) + b dx dy is a quadratic in dx, so
+    those columns are the interval where sigma <= log(255 o), solved for once a span: no pair is listed only to be
+    dropped.
 
     With ``absgrad`` (a (M0, 2) sum and (M,) the row of it each footprint adds to), the backward pass adds each pair's
-    absolute pull on its footprint's centre, |d loss / d sigma| x |(a dx + b dy, b dx + c dy)| (:func:`keep_absgrad`)."""
+    absolute pull on its footprint's centre, |d loss / d sigma| x |(a dx + b dy, b dx + c dy)|
+    (:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`)."""
     device = boxes.device
     first_row, last_row = boxes[:, 2].clamp(min=start), boxes[:, 3].clamp(max=stop - 1)
     columns = (boxes[:, 1] - boxes[:, 0] + 1).clamp(min=0)

@@ -1,6 +1,7 @@
 """The reference rasteriser: every footprint evaluated at every pixel, composited front to back. The maths of
-splatting in a screenful, for small images and for the tests that hold :func:`~nerf_lightning.splats.rasterize.rasterize`
-equal to it; memory grows as footprints x pixels.
+splatting in a screenful, for small images and for the tests that hold the fast ones equal to it (the pairs rasteriser
+:mod:`~nerf_lightning.splats.rasterize_pairs`, the tile kernels :mod:`~nerf_lightning.splats.rasterize_tiles` and
+:mod:`~nerf_lightning.splats.rasterize_triton`); memory grows as footprints x pixels.
 
 At pixel centre p, footprint g (centre m_g, conic Q_g, opacity o_g) has
 
@@ -18,14 +19,14 @@ import torch
 
 from nerf_lightning.rendering.compositing import weights_from_alpha
 from nerf_lightning.splats.projection import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, Projection
-from nerf_lightning.splats.rasterize import keep_absgrad
+from nerf_lightning.splats.rasterize_core import keep_absgrad, shaded_view
 
 
-def rasterize_dense(projection: Projection, colours: torch.Tensor, height: int, width: int,
-                    background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
+def rasterize_reference(projection: Projection, colours: torch.Tensor, height: int, width: int,
+                        background: torch.Tensor, absgrad: bool = False) -> dict[str, torch.Tensor]:
     """Footprints (M of them) with (M, 3) colours -> rgb (H, W, 3), depth (H, W) (camera z, where something is
     drawn: the weights' mean), accumulation (H, W); ``background`` (3,). With ``absgrad``, the backward pass fills
-    ``projection.means2d.absgrad`` (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`)."""
+    ``projection.means2d.absgrad`` (:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`)."""
     v, u = torch.meshgrid(torch.arange(height, device=colours.device, dtype=colours.dtype) + 0.5,
                           torch.arange(width, device=colours.device, dtype=colours.dtype) + 0.5, indexing="ij")
     order = torch.sort(projection.depths.detach(), stable=True).indices  # nearest first
@@ -50,8 +51,5 @@ def rasterize_dense(projection: Projection, colours: torch.Tensor, height: int, 
     composited = weights_from_alpha(alpha)
     done = (composited.transmittance * (1.0 - alpha)).detach() <= MIN_TRANSMITTANCE
     weights = torch.where(done, torch.zeros_like(alpha), composited.weights)
-    accumulation = weights.sum(dim=-1)
-    rgb = weights @ colours[order] + (1.0 - accumulation)[:, None] * background
-    depth = (weights @ projection.depths[order]) / accumulation.clamp(min=1e-10)
-    return {"rgb": rgb.reshape(height, width, 3), "depth": depth.reshape(height, width),
-            "accumulation": accumulation.reshape(height, width)}
+    shaded = weights @ torch.cat([colours[order], projection.depths[order, None]], dim=-1)  # (H * W, 4): rgb, z
+    return shaded_view(shaded.reshape(height, width, 4), weights.sum(dim=-1).reshape(height, width), background)

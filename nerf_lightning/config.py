@@ -31,6 +31,7 @@ OmegaConf.register_new_resolver("run_dir_of", lambda path: str(run_dir_of(path))
 OBJECTS_02 = "in nerf-lightning 0.2, when samplers and the scene space became objects"
 VIEWER_03 = "in nerf-lightning 0.3, when the live viewer became a callback"
 MODES_04 = "after nerf-lightning 0.3, when the renderer's two modes became two renderers"
+MARCH_04 = "in nerf-lightning 0.4, when the fixed-shape march became a sampler"
 
 # Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
@@ -47,6 +48,8 @@ RENAMED_KEYS = {
     **{f"model.field.{key}": (f"model.field.encoding.{key}", "", OBJECTS_02)
        for key in ("n_levels", "features_per_level", "log2_table_size", "base_resolution", "max_resolution")},
     **{f"viewer_{key}": (f"callbacks.viewer.{key}", "with viewer=live", VIEWER_03) for key in ("host", "port", "time_share")},
+    "model.sampler.capacity": ("model.sampler.samples_per_step", "with model/sampler=fixed_shape_grid", MARCH_04),
+    "model.sampler.march_capacity": ("model.sampler.density_pass_samples", "with model/sampler=fixed_shape_grid", MARCH_04),
 }
 
 
@@ -60,11 +63,12 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
             return (f"'viewer={value}' was replaced {VIEWER_03} (see the README): use viewer=live for the live view, "
                     "or leave viewer out for none")
         if key == "model.renderer.fixed_shapes":
-            return (f"'{key}' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=table for a step of fixed "
-                    "shapes, model/renderer=rounds for rounds")
+            return (f"'{key}' was replaced {MODES_04} (see CHANGELOG.md): for a step of fixed shapes use "
+                    "model/sampler=fixed_shape_grid (an occupancy grid) or model/renderer=table (the proposal sampler), "
+                    "model/renderer=rounds for rounds")
         if key == "model/renderer" and value.strip() == "volume":
             return (f"'model/renderer=volume' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=rounds "
-                    "(its keys are the same), or model/renderer=table for a step of fixed shapes")
+                    "(its keys are the same), or model/renderer=table for a step of fixed shapes (the proposal sampler)")
         for old, (new, note, why) in RENAMED_KEYS.items():
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")

@@ -268,8 +268,9 @@ class RadianceFieldModule(SceneModule):
             rgb = rgb + (1.0 - out["accumulation"])[:, None] * (colour - self.space.background.to(rgb))
             if "object_mask" in batch:  # data.masks=background: outside the object the target is that colour too
                 target = composite_background(target, batch["object_mask"], colour)
-        samples = out["samples"]
-        complete = samples.complete  # (N,) the rays the sampler cut short stay out of the loss (None: it cut none)
+        samples = out.get("samples")
+        # (N,) the rays the sampler cut short stay out of the loss (None: it cut none)
+        complete = samples.complete if samples is not None else None
         if complete is None:
             mse = F.mse_loss(rgb, target)
         else:
@@ -290,7 +291,7 @@ class RadianceFieldModule(SceneModule):
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
         terms = {"loss": loss, "mse": mse.detach(), "samples_per_ray": out["n_evaluated"] / rays_o.shape[0]}
         terms.update({f"loss_{name}": value.detach() for name, value in extra_losses.items()})
-        if samples.rays_that_fit is not None:
+        if samples is not None and samples.rays_that_fit is not None:
             terms["rays_that_fit"] = samples.rays_that_fit.detach()
         return terms
 

@@ -26,7 +26,7 @@ class RayBudget(L.Callback):
     with it.
 
     Args:
-        fill: the share of the capacity to aim at: below 1, a step whose rays want more than the last's still fits.
+        fill: the share of the samples a step to aim at: below 1, a step whose rays want more than the last's still fits.
         min_rays, max_rays, multiple: the bounds of the ray count, and its step. The march's table of steps is
             (rays, reach / step size): ``max_rays`` bounds its memory (65 536 rays of 1040 steps: a few GB).
 

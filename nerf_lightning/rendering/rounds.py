@@ -53,7 +53,7 @@ class RoundsRenderer(Renderer):
             return self.one_pass(field, rays, samples, space)
         n_rays, k = samples.n_rays, self.samples_per_round
         device = rays.origins.device
-        # [:n_rays]: a fixed capacity's padding (ray index N, last) is never a live ray's
+        # [:n_rays]: a table's padding (ray index N, last) is never a live ray's
         counts = torch.bincount(samples.ray_indices, minlength=n_rays)[:n_rays]
         offsets = torch.cumsum(counts, 0) - counts
         slots = torch.arange(k, device=device)

@@ -40,6 +40,7 @@ RENAMED_DATA = {**{name: f"data=rays data/scene={name} (data=views data/scene={n
                 "image": "data=pixels"}
 START_04 = "in nerf-lightning 0.4, when the splats' start and loss became objects (model/start, model.loss)"
 RASTERIZER_04 = "in nerf-lightning 0.4, when what draws a splat model's views became one object, model/rasterizer"
+MARCH_04 = "in nerf-lightning 0.4, when the fixed-shape march became a sampler"
 
 # Keys that moved: old key -> (the key now, a note, why), where the rest of a longer old key carries over to the new one
 RENAMED_KEYS = {
@@ -67,6 +68,8 @@ RENAMED_KEYS = {
     "model.sh_degree_interval": ("model.gaussians.sh_degree_interval", "", START_04),
     "model.max_pairs": ("model.rasterizer.max_pairs", "", RASTERIZER_04),
     "model.antialiased": ("model.rasterizer.antialiased", "", RASTERIZER_04),
+    "model.sampler.capacity": ("model.sampler.samples_per_step", "with model/sampler=fixed_shape_grid", MARCH_04),
+    "model.sampler.march_capacity": ("model.sampler.density_pass_samples", "with model/sampler=fixed_shape_grid", MARCH_04),
 }
 
 # Keys that moved for the splats alone (the radiance fields keep them where they were): answered where the command
@@ -84,11 +87,12 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
             return (f"'viewer={value}' was replaced {VIEWER_03} (see the README): use viewer=live for the live view, "
                     "or leave viewer out for none")
         if key == "model.renderer.fixed_shapes":
-            return (f"'{key}' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=table for a step of fixed "
-                    "shapes, model/renderer=rounds for rounds")
+            return (f"'{key}' was replaced {MODES_04} (see CHANGELOG.md): for a step of fixed shapes use "
+                    "model/sampler=fixed_shape_grid (an occupancy grid) or model/renderer=table (the proposal sampler), "
+                    "model/renderer=rounds for rounds")
         if key == "model/renderer" and value.strip() == "volume":
             return (f"'model/renderer=volume' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=rounds "
-                    "(its keys are the same), or model/renderer=table for a step of fixed shapes")
+                    "(its keys are the same), or model/renderer=table for a step of fixed shapes (the proposal sampler)")
         if key == "data" and value.strip() in RENAMED_DATA:
             return f"'data={value.strip()}' was replaced {DATA_04} (see the README): use {RENAMED_DATA[value.strip()]}"
         if key == "model.rasterizer" and value.strip() in ("auto", "tiles", "pairs"):

@@ -119,8 +119,8 @@ TESTS=(tests)
 SYNC_STEPS=300 SYNC_WARMUP=256 SYNC_OVERRIDES=()
 if [ "$SMOKE" = 1 ]; then
     TESTS=(tests/test_syncs.py tests/bench/test_figures.py tests/test_metrics.py)
-    SYNC_STEPS=8 SYNC_WARMUP=4 SYNC_OVERRIDES=(data.scene.downscale=8 model.field.encoding.log2_table_size=14 model.sampler.grid.resolution=32 model.sampler.capacity=16384
-        model.sampler.march_capacity=65536 data.batch_size=256 model.sampler.grid.warmup_steps=4 model.sampler.grid.update_every=2)
+    SYNC_STEPS=8 SYNC_WARMUP=4 SYNC_OVERRIDES=(data.scene.downscale=8 model.field.encoding.log2_table_size=14 model.sampler.grid.resolution=32 model.sampler.samples_per_step=16384
+        model.sampler.density_pass_samples=65536 data.batch_size=256 model.sampler.grid.warmup_steps=4 model.sampler.grid.update_every=2)
 fi
 echo "$SYNC_WARMUP" >"$WORK/sync_warmup.txt"
 # the files that touch a GPU run first, in a pass of their own: a suite cut at its time limit has run them (a lease

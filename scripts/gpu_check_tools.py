@@ -24,7 +24,7 @@ TARGETS = {("fast", 1.0): 33.0, ("fast", 3.0): 35.0}
 # the scenes a lease can carry (scripts/gpu_check.yaml's rows)
 SCENES = ("lego", "fox", "moldGoldCape")
 # on a CPU (GPU_CHECK_SMOKE=1): tiny views and few Gaussians, so that each row takes seconds
-SMALL_GRID = ["model.field.encoding.log2_table_size=14", "model.field.encoding.compile_evaluation=false", "model.sampler.grid.resolution=32", "model.sampler.capacity=16384", "model.sampler.march_capacity=65536",
+SMALL_GRID = ["model.field.encoding.log2_table_size=14", "model.field.encoding.compile_evaluation=false", "model.sampler.grid.resolution=32", "model.sampler.samples_per_step=16384", "model.sampler.density_pass_samples=65536",
               "data.batch_size=256"]
 SMOKE_OVERRIDES = {"fast_blender_gpu": ["data.scene.downscale=8", *SMALL_GRID],
                    "splat_blender_gpu": ["data.scene.downscale=8", "model.start.random.count=2000"],

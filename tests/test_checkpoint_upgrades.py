@@ -28,3 +28,11 @@ def test_a_03_splat_and_fixed_shape_model_build_from_their_upgraded_configs():
     for preset in ("splat_object_cpu", "fast_blender_gpu"):
         model = instantiate(OmegaConf.create(upgraded_config({"model": OLD[preset]})["model"]))
         assert type(model).__name__ in ("SplatModule", "RadianceFieldModule")
+
+
+@pytest.mark.parametrize(("fixed_shapes", "renderer"), [(True, "TableRenderer"), (False, "RoundsRenderer")])
+def test_a_checkpoints_volume_renderer_of_before_0_3s_two_renderers_builds_the_one_it_chose(fixed_shapes, renderer):
+    old = dict(OLD["fast"], renderer={"_target_": "nerf_lightning.rendering.VolumeRenderer", "early_stop_eps": 1e-4,
+                                      "samples_per_round": 16, "gradient_scaling_distance": 0.0, "fixed_shapes": fixed_shapes})
+    built = instantiate(OmegaConf.create(upgraded_config({"model": old})["model"]))
+    assert type(built.renderer).__name__ == renderer

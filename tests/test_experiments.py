@@ -75,8 +75,8 @@ def tiny_overrides(experiment: str, tiny_data: dict[str, Path]) -> list[str]:
         overrides.append("model.field.aabb=[-40.0,-40.0,-1.0,40.0,40.0,1.0]")
     if sampler.get("bake_resolution"):  # proposal networks baked for validation at 16^3, not 128^3
         overrides.append("model.sampler.bake_resolution=16")
-    if sampler.get("capacity"):  # a fixed-shape table of a few thousand samples, not Instant-NGP's 2^18 (half a minute a CPU step)
-        overrides += ["model.sampler.capacity=8192", "model.sampler.march_capacity=32768"]
+    if sampler.get("samples_per_step"):  # a fixed-shape table of a few thousand samples, not Instant-NGP's 2^18 (half a minute a CPU step)
+        overrides += ["model.sampler.samples_per_step=8192", "model.sampler.density_pass_samples=32768"]
     if cfg.model.get("compile"):  # the step run plainly: tests/models/test_compiled_step.py compiles it (a minute on a CPU)
         overrides.append("model.compile=false")
     return overrides

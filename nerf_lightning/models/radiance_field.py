@@ -20,8 +20,9 @@ from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
 from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
 from nerf_lightning.models.contract import Overlay
+from nerf_lightning.models.radiance_field_config import config_before_04
 from nerf_lightning.parameters.exposure import ViewExposure
-from nerf_lightning.rendering.renderer import Renderer
+from nerf_lightning.rendering.renderer import Renderer, check_compilable
 from nerf_lightning.rendering.rounds import RoundsRenderer
 from nerf_lightning.rendering.samplers.base import RaySampler
 
@@ -45,7 +46,7 @@ class RadianceFieldModule(SceneModule):
         sampler: where along each ray the field is evaluated (:class:`~nerf_lightning.rendering.samplers.base.RaySampler`).
         optimizer, scheduler: see :class:`~nerf_lightning.models.base.FieldModule`; they train the field and
             whatever the sampler learns by gradient (a coarse network, proposal networks).
-        renderer: a :class:`~nerf_lightning.rendering.renderer.Renderer` (``model/renderer=rounds|table``).
+        renderer: a :class:`~nerf_lightning.rendering.renderer.Renderer` (``model/renderer=...``).
         chunk_size: rays rendered at once in evaluation, so memory stays bounded at any resolution.
         camera_refinement: learn a pose correction for each training view
             (:class:`~nerf_lightning.geometry.refinement.CameraRefinement`, its own learning rate, its penalties
@@ -65,13 +66,15 @@ class RadianceFieldModule(SceneModule):
             or a hole in the object (seen through, masked out) shares. 0: none.
         compile: run the training step's forward and loss (sampling, field, compositing, loss) as one graph through
             ``torch.compile(fullgraph=True)``, its backward compiled with it (inductor: C++ on a CPU, Triton kernels on
-            a GPU); the sampler's grid refreshes stay outside. Worth it where the step has fixed shapes (the GPU
-            presets); without a working compiler it runs plainly after one warning (:class:`~nerf_lightning.compiling.CompiledOrEager`).
+            a GPU); the sampler's grid refreshes stay outside. Only where no size in the step depends on the data
+            (:func:`~nerf_lightning.rendering.renderer.check_compilable`, the GPU presets); without a working compiler it runs plainly after one warning (:class:`~nerf_lightning.compiling.CompiledOrEager`).
         compile_mode: ``torch.compile``'s mode (None: its default; ``reduce-overhead``: CUDA graphs on a GPU,
             ``max-autotune-no-cudagraphs``).
     """
 
     kind = "radiance_field"
+    # a checkpoint's model config of before 0.4 (the fixed-shape march on the occupancy-grid sampler) read as this one's
+    upgrade_config = staticmethod(config_before_04)
 
     def __init__(
         self,
@@ -95,12 +98,9 @@ class RadianceFieldModule(SceneModule):
         self.camera_refinement, self.exposure = camera_refinement, exposure
         self.train_background = check_train_background(train_background)
         self.mask_loss = check_mask_loss(mask_loss)
-        if compile and (not self.renderer.fixed_shapes or (sampler.grid is not None and sampler.capacity is None)):
-            raise ValueError("model.compile=true needs a training step of fixed shapes: model/renderer=table and, with "
-                             "an occupancy grid, a model.sampler.capacity (as the GPU presets have); any other step's sizes "
-                             "depend on the data, so each would compile anew")
-        self.rays_that_fit: torch.Tensor | None = None
-        self.ray_count_varies = False  # see vary_ray_count
+        if compile:
+            check_compilable(self.renderer, sampler)
+        self.rays_that_fit: torch.Tensor | None = None  # see training_step
         # the function, not the bound method: a copy of the module would otherwise run this one's step
         self.compiled_step = CompiledOrEager(type(self).step_losses, "the training step", fullgraph=True, dynamic=None,
                                              mode=compile_mode) if compile else None
@@ -134,10 +134,10 @@ class RadianceFieldModule(SceneModule):
     def parameter_groups(self) -> list[dict[str, Any]]:
         """``field`` (the field and what the sampler learns) at the optimiser's learning rate, and the camera
         corrections and the photos' exposures, those that are on, in ``camera_refinement`` and ``exposure`` at their own."""
-        own = {name: table for name in ("camera_refinement", "exposure") if (table := getattr(self, name)) is not None}
-        apart = {id(p) for table in own.values() for p in table.parameters()}
+        own = {name: per_view for name in ("camera_refinement", "exposure") if (per_view := getattr(self, name)) is not None}
+        apart = {id(p) for per_view in own.values() for p in per_view.parameters()}
         return [{"name": "field", "params": [p for p in self.parameters() if id(p) not in apart]},
-                *({"name": name, "params": list(table.parameters()), "lr": table.lr} for name, table in own.items())]
+                *({"name": name, "params": list(per_view.parameters()), "lr": per_view.lr} for name, per_view in own.items())]
 
     def on_fit_start(self) -> None:
         space = getattr(getattr(self.trainer, "datamodule", None), "space", None)
@@ -234,29 +234,14 @@ class RadianceFieldModule(SceneModule):
             return Overlay("Occupied cells", "points", centres, (240, 120, 30), size) if len(centres) else None
         raise ValueError(f"{type(self).__name__} has no overlay '{name}': it has {', '.join(self.overlay_names()) or 'none'}")
 
-    def vary_ray_count(self) -> None:
-        """The rays a step will vary from step to step (a sample budget, :class:`~nerf_lightning.models.ray_budget.RayBudget`):
-        a compiled step then traces one graph for any ray count instead of one a count. Refused in one line where
-        the sampler has no fixed capacity to fill."""
-        if self.sampler.capacity is None:
-            raise ValueError("callbacks.ray_budget sizes the rays a step to an occupancy grid's model.sampler.capacity, and this "
-                             "model has none: set one (as experiment=fast_blender_gpu does), or remove the callback")
-        self.ray_count_varies = True
-
     def training_step(self, batch: RayBatch, batch_idx: int) -> torch.Tensor:
         self.sampler.update(self.global_step, self.field)  # a grid refresh: outside the compiled graph, on its own steps
         if self.mask_loss:
             masks_for_mask_loss(batch)  # one line, outside the compiled graph, where the batch has no masks
-        if self.compiled_step is None:
-            terms = self.step_losses(batch)
-        else:
-            if self.ray_count_varies:  # one graph for every ray count (models.ray_budget.RayBudget), not one compiled per count
-                for value in batch.values():
-                    if isinstance(value, torch.Tensor):
-                        torch._dynamo.maybe_mark_dynamic(value, 0)
-            terms = self.compiled_step(self, batch)
+        terms = self.step_losses(batch) if self.compiled_step is None else self.compiled_step(self, batch)
         loss = terms.pop("loss")
-        # the rays a fixed-capacity sampler would have held whole (models.ray_budget.RayBudget sizes later steps by it), or None
+        # how many rays the sampler's samples a step would hold (RaySamples.rays_that_fit: models.ray_budget.RayBudget
+        # sizes later steps by it), or None
         self.rays_that_fit = terms.get("rays_that_fit")
         self.log("train/samples_per_ray", terms.pop("samples_per_ray"), on_step=True)  # tensors: not read back here
         self.log("train/psnr", mse_to_psnr(terms.pop("mse")), on_step=True)
@@ -271,9 +256,9 @@ class RadianceFieldModule(SceneModule):
     def step_losses(self, batch: RayBatch) -> dict[str, torch.Tensor]:
         """The training step's tensors, from a batch of N rays to the loss (what ``compile`` compiles): ``loss``
         (the one to minimise), ``mse`` and ``samples_per_ray`` (detached), each extra loss as ``loss_<name>``
-        (the sampler's, the camera corrections' and the appearance embedding's penalties, detached) and, from a
-        sampler of fixed capacity, ``rays_that_fit`` (0-d: how many rays of what this step's rays wanted its
-        buffers would hold)."""
+        (the sampler's, the camera corrections' and the appearance embedding's penalties, detached) and, where the
+        samples have it, ``rays_that_fit`` (0-d, :attr:`RaySamples.rays_that_fit
+        <nerf_lightning.rendering.packed.RaySamples.rays_that_fit>`)."""
         rays_o, rays_d, camera_index = batch["rays_o"], batch["rays_d"], batch.get("camera_index")
         if self.camera_refinement is not None and camera_index is not None:
             rays_o, rays_d = self.camera_refinement(rays_o, rays_d, camera_index)
@@ -287,14 +272,15 @@ class RadianceFieldModule(SceneModule):
             if "object_mask" in batch:  # data.masks=background: outside the object the target is that colour too
                 target = composite_background(target, batch["object_mask"], colour)
         samples = out.get("samples")
-        complete = samples.extras.get("complete") if samples is not None else None  # a fixed capacity: rays cut short stay out of the loss
+        # (N,) the rays the sampler cut short stay out of the loss (None: it cut none)
+        complete = samples.complete if samples is not None else None
         if complete is None:
             mse = F.mse_loss(rgb, target)
         else:
             mse = ((rgb - target).square().mean(dim=1) * complete).sum() / complete.sum().clamp(min=1)
         extra_losses = self.sampler.losses(out["samples"], out, target)
         if self.mask_loss:
-            # a ray a fixed capacity cut short has only part of its opacity: left out, as from the colours' loss
+            # a ray the sampler cut short has only part of its opacity: left out, as from the colours' loss
             extra_losses["mask"] = self.mask_loss * opacity_mask_loss(out["accumulation"], batch["object_mask"], complete)
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
@@ -308,8 +294,8 @@ class RadianceFieldModule(SceneModule):
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
         terms = {"loss": loss, "mse": mse.detach(), "samples_per_ray": out["n_evaluated"] / rays_o.shape[0]}
         terms.update({f"loss_{name}": value.detach() for name, value in extra_losses.items()})
-        if samples is not None and "rays_that_fit" in samples.extras:
-            terms["rays_that_fit"] = samples.extras["rays_that_fit"].detach()
+        if samples is not None and samples.rays_that_fit is not None:
+            terms["rays_that_fit"] = samples.rays_that_fit.detach()
         return terms
 
 def box_edges(low: torch.Tensor, high: torch.Tensor, to_world: Callable[[torch.Tensor], torch.Tensor]) -> np.ndarray:

@@ -1,5 +1,6 @@
 """Instant-NGP's sample budget for the fixed-shape GPU presets (``callbacks.ray_budget``): a Lightning callback that
-sizes the rays of the next steps from what an earlier step's rays wanted of the occupancy-grid sampler's capacity."""
+sizes the rays of the next steps from what an earlier step's rays wanted of the sampler's samples a step
+(``model/sampler=fixed_shape_grid``'s ``samples_per_step``)."""
 
 from __future__ import annotations
 
@@ -11,18 +12,21 @@ import torch
 
 class RayBudget(L.Callback):
     """Instant-NGP's sample budget: the rays of the next training steps sized so that their samples fill the
-    sampler's fixed capacity, from what the rays of an earlier step wanted, read back a step late so that the
-    device never waits for the host.
+    sampler's fixed number of samples a step (``samples_per_step``), from what the rays of an earlier step wanted,
+    read back a step late so that the device never waits for the host.
 
-    After each step the model's ``rays_that_fit`` (a 0-d device tensor from an occupancy grid of fixed capacity:
-    how many rays of the samples a ray wanted its buffers would hold) is copied to the host without waiting (pinned
+    After each step the model's ``rays_that_fit`` (a 0-d device tensor, :attr:`RaySamples.rays_that_fit
+    <nerf_lightning.rendering.packed.RaySamples.rays_that_fit>`: how many rays of the samples a ray wanted the
+    sampler's samples a step would hold) is copied to the host without waiting (pinned
     memory and a CUDA event); at the start of a later step, once the copy has landed, ``data.batch_size`` becomes
     ``fill`` times it, rounded down to a multiple of ``multiple`` (so that a compiled step sees few sizes) and kept
     within ``min_rays``..``max_rays``. Too many rays and the last are cut short (left out of the loss); too few and
-    the capacity is padding. The ray count is kept in checkpoints, so a resumed run goes on with it.
+    the samples are padding. Each batch's tensors are marked as of a varying size, so that a compiled step traces
+    one graph for any ray count, not one a count. The ray count is kept in checkpoints, so a resumed run goes on
+    with it.
 
     Args:
-        fill: the share of the capacity to aim at: below 1, a step whose rays want more than the last's still fits.
+        fill: the share of the samples a step to aim at: below 1, a step whose rays want more than the last's still fits.
         min_rays, max_rays, multiple: the bounds of the ray count, and its step. The march's table of steps is
             (rays, reach / step size): ``max_rays`` bounds its memory (65 536 rays of 1040 steps: a few GB).
 
@@ -41,10 +45,14 @@ class RayBudget(L.Callback):
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if stage != "fit":
             return
-        if not hasattr(pl_module, "vary_ray_count") or not hasattr(trainer.datamodule, "set_rays_per_batch"):
+        sampler = getattr(pl_module, "sampler", None)
+        if sampler is None or not hasattr(trainer.datamodule, "set_rays_per_batch"):
             raise ValueError(f"callbacks.ray_budget sizes the rays of a radiance field's ray batches; {type(pl_module).__name__} "
                              f"on {type(trainer.datamodule).__name__} has none: remove the callback (~callbacks.ray_budget)")
-        pl_module.vary_ray_count()
+        if getattr(sampler, "samples_per_step", None) is None:
+            raise ValueError("callbacks.ray_budget sizes the rays a step to fill the sampler's samples a step, and "
+                             f"{type(sampler).__name__} takes as many as the rays have: use model/sampler=fixed_shape_grid "
+                             "(as experiment=fast_blender_gpu does), or remove the callback (~callbacks.ray_budget)")
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # resumed: the ray count it had (the callback's state is restored before this hook, and the first batch is
@@ -67,6 +75,9 @@ class RayBudget(L.Callback):
             self.pending = (fit.detach().to("cpu", copy=True), None)
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int) -> None:
+        for value in batch.values():  # the ray count a symbol of a compiled step, not a constant (no effect run plainly)
+            if isinstance(value, torch.Tensor):
+                torch._dynamo.maybe_mark_dynamic(value, 0)
         if self.pending is None:
             return
         host, event = self.pending

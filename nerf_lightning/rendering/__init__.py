@@ -8,11 +8,12 @@ from nerf_lightning.rendering.compositing import (
     weights_from_optical_depth_packed,
 )
 from nerf_lightning.rendering.occupancy import OccupancyGrid, march_rays
-from nerf_lightning.rendering.packed import composite_packed, exclusive_sum_packed
+from nerf_lightning.rendering.packed import FixedShapeSamples, composite_on_table, composite_packed, exclusive_sum_packed
 from nerf_lightning.rendering.renderer import Renderer, evaluate_field
 from nerf_lightning.rendering.rounds import RoundsRenderer
 from nerf_lightning.rendering.table import TableRenderer
 from nerf_lightning.rendering.samplers import (
+    FixedShapeGridSampler,
     HierarchicalSampler,
     OccupancyGridSampler,
     ProposalSampler,
@@ -24,17 +25,9 @@ from nerf_lightning.rendering.samplers import (
 from nerf_lightning.rendering.volume import composite, render_weights, transmittance
 
 __all__ = [
-    "Compositing", "HierarchicalSampler", "OccupancyGrid", "OccupancyGridSampler", "ProposalSampler", "RaySampler", "RaySamples", "Renderer", "RoundsRenderer",
-    "StratifiedSampler", "TableRenderer", "VolumeRenderer", "evaluate_field",
-    "composite", "composite_packed", "exclusive_sum_packed", "march_rays", "render_weights", "sample_pdf", "transmittance",
+    "Compositing", "FixedShapeGridSampler", "FixedShapeSamples", "HierarchicalSampler", "OccupancyGrid", "OccupancyGridSampler", "ProposalSampler", "RaySampler", "RaySamples", "Renderer", "RoundsRenderer",
+    "StratifiedSampler", "TableRenderer", "evaluate_field",
+    "composite", "composite_on_table", "composite_packed", "exclusive_sum_packed", "march_rays", "render_weights", "sample_pdf", "transmittance",
     "weights_from_alpha", "weights_from_alpha_packed", "weights_from_optical_depth", "weights_from_optical_depth_packed",
 ]
 
-
-def VolumeRenderer(early_stop_eps: float = 1e-4, samples_per_round: int = 16, gradient_scaling_distance: float = 0.0,  # noqa: N802
-                   fixed_shapes: bool = False) -> Renderer:
-    """The renderer as configs and checkpoints before ``model/renderer=rounds|table`` name it
-    (``_target_: nerf_lightning.rendering.VolumeRenderer``): ``fixed_shapes`` picks the table renderer."""
-    if fixed_shapes:
-        return TableRenderer(early_stop_eps, samples_per_round, gradient_scaling_distance)
-    return RoundsRenderer(early_stop_eps, samples_per_round, gradient_scaling_distance)

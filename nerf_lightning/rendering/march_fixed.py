@@ -1,6 +1,7 @@
-"""The occupancy-grid march of a training step of fixed shapes (``model.sampler.capacity``, the GPU presets): the
-same occupied steps as :func:`~nerf_lightning.rendering.occupancy.march_rays`, laid out on a table of a fixed number
-of samples, so that nothing in the step waits for the device."""
+"""The occupancy-grid march of a training step of fixed shapes (``model/sampler=fixed_shape_grid``, the GPU presets):
+the same occupied steps as :func:`~nerf_lightning.rendering.occupancy.march_rays` (the readable reference, which
+tests hold this equal to), laid out on a table of a fixed number of samples, so that nothing in the step waits for
+the device."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ from collections.abc import Callable
 import torch
 
 from nerf_lightning.rendering.compositing import weights_from_optical_depth
-from nerf_lightning.rendering.occupancy import DensityFn, OccupancyGrid, _identity
-from nerf_lightning.rendering.packed import RaySamples, on_table
+from nerf_lightning.rendering.occupancy import DensityFn, OccupancyGrid, field_space_map
+from nerf_lightning.rendering.packed import FixedShapeSamples, on_table
 
 
 def march_rays_fixed(
@@ -31,12 +32,12 @@ def march_rays_fixed(
     early_stop_eps: float = 0.0,
     generator: torch.Generator | None = None,
     march_capacity: int | None = None,
-) -> RaySamples:
+) -> FixedShapeSamples:
     """March (N, 3) rays from ``t_enter`` to ``t_exit`` (N,) into exactly ``capacity`` samples
-    (:attr:`RaySamples.slots`): the steps are laid out ``reach / step_size`` a ray, ``reach`` the longest a ray can be
+    (:class:`~nerf_lightning.rendering.packed.FixedShapeSamples`): the steps are laid out ``reach / step_size`` a ray, ``reach`` the longest a ray can be
     in the sampled range (the grid box's diagonal), and the samples are the occupied steps in order, then padding of
-    zero width, or, where more steps are occupied, the first ``capacity`` of them; ``extras["complete"]`` (N,) bool
-    says which rays kept all their steps, so a loss can leave the others out, and ``extras["rays_that_fit"]`` how many
+    zero width, or, where more steps are occupied, the first ``capacity`` of them; ``complete`` (N,) bool
+    says which rays kept all their steps, so a loss can leave the others out, and ``rays_that_fit`` how many
     rays of what these wanted the capacity holds. With ``density_fn`` and an ``alpha_threshold`` or
     ``early_stop_eps``, the occupied steps first fill ``march_capacity`` samples, evaluated once without gradients
     and composited along the table, and those that pass fill the ``capacity``. Steps are ``step_size`` long (no cone
@@ -49,13 +50,13 @@ def march_rays_fixed(
 
 def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor,
                  step_size: float, perturb: bool, to_field: Callable[[torch.Tensor], torch.Tensor] | None,
-                 generator: torch.Generator | None, capacity: int, reach: float | None) -> RaySamples:
+                 generator: torch.Generator | None, capacity: int, reach: float | None) -> FixedShapeSamples:
     """:func:`~nerf_lightning.rendering.occupancy.march_rays`'s occupied steps in ``capacity`` samples on an
     (N + 1, S) table of steps, S = ceil(reach / step_size)."""
     if reach is None or reach <= 0:
         raise ValueError("march_rays_fixed needs reach, the longest a ray can be in the sampled range")
     n_rays, width = rays_o.shape[0], math.ceil(reach / step_size)
-    to_field = _identity if to_field is None else to_field  # not `or`: see _identity
+    to_field = field_space_map(to_field)
     # no generator keyword without a generator: a compiled step with a symbolic ray count cannot trace one
     draw = {} if generator is None else {"generator": generator}
     shift = (torch.rand(n_rays, 1, dtype=rays_o.dtype, device=rays_o.device, **draw) if perturb
@@ -79,16 +80,16 @@ def _march_fixed(grid: OccupancyGrid, rays_o: torch.Tensor, rays_d: torch.Tensor
     # how many rays of the samples a ray wants (over the rays held whole: the first, a random draw of the batch) the
     # capacity holds, for the rays of later steps (callbacks.RayBudget); a device tensor, read back a step late
     fit = capacity * cut / (ray_indices < cut).sum().clamp(min=1)  # 0 where the first ray alone overflows: the fewest rays
-    return RaySamples(ray_indices, starts[cells], ends[cells], n_rays, {"complete": complete, "rays_that_fit": fit},
-                      cells - ray_indices * width, width)
+    return FixedShapeSamples(ray_indices, starts[cells], ends[cells], n_rays, {}, cells - ray_indices * width, width,
+                             complete, fit)
 
 
-def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_field: Callable[[torch.Tensor], torch.Tensor] | None,
-            density_fn: DensityFn, alpha_threshold: float, early_stop_eps: float, capacity: int) -> RaySamples:
+def _pruned(samples: FixedShapeSamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_field: Callable[[torch.Tensor], torch.Tensor] | None,
+            density_fn: DensityFn, alpha_threshold: float, early_stop_eps: float, capacity: int) -> FixedShapeSamples:
     """The fixed-capacity ``samples`` with opacity at least ``alpha_threshold`` and transmittance at least
     ``early_stop_eps`` (one density pass without gradients, composited along the table), in ``capacity`` samples."""
     n_rays, width = samples.n_rays, samples.width
-    to_field = _identity if to_field is None else to_field  # not `or`: see _identity
+    to_field = field_space_map(to_field)
     cells = samples.ray_indices * width + samples.slots
     with torch.no_grad():
         ray_of = samples.ray_indices.clamp(max=n_rays - 1)
@@ -106,9 +107,8 @@ def _pruned(samples: RaySamples, rays_o: torch.Tensor, rays_d: torch.Tensor, to_
     ray_indices = torch.div(kept_cells, width, rounding_mode="floor")
     # rays cut short: those the first buffer cut, and those whose kept samples this buffer cannot all hold
     cut = ray_indices[-1]  # as in _march_fixed: the padding's ray is N
-    complete = samples.extras["complete"] & (torch.arange(n_rays, device=cut.device) < cut)
+    complete = samples.complete & (torch.arange(n_rays, device=cut.device) < cut)
     # the rays both buffers hold, of what a ray the march held whole wants of each (see _march_fixed)
-    whole = samples.extras["complete"]
-    fit = torch.minimum(samples.extras["rays_that_fit"], capacity * whole.sum() / (keep & whole[ray_of]).sum().clamp(min=1))
-    return RaySamples(ray_indices, starts, ends, n_rays, {"complete": complete, "rays_that_fit": fit},
-                      kept_cells - ray_indices * width, width)
+    whole = samples.complete
+    fit = torch.minimum(samples.rays_that_fit, capacity * whole.sum() / (keep & whole[ray_of]).sum().clamp(min=1))
+    return FixedShapeSamples(ray_indices, starts, ends, n_rays, {}, kept_cells - ray_indices * width, width, complete, fit)

@@ -24,6 +24,8 @@ from nerf_lightning.rendering.packed import RaySamples
 
 # points (M, 3) -> densities (M,)
 DensityFn = Callable[[torch.Tensor], torch.Tensor]
+# a refresh's step -> the cells it evaluates (M,) and a point in each, (M, 3) in the grid's unit cube
+CellDraw = Callable[[int], tuple[torch.Tensor, torch.Tensor]]
 
 
 class OccupancyGrid(nn.Module):
@@ -90,23 +92,21 @@ class OccupancyGrid(nn.Module):
         return self.cell_points(torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1))
 
     @torch.no_grad()
-    def update(self, step: int, density_fn: DensityFn, step_size: float, chunk_size: int = 65536, on_device: bool = False) -> bool:
+    def update(self, step: int, density_fn: DensityFn, step_size: float, chunk_size: int = 65536,
+               draw: CellDraw | None = None) -> bool:
         """Refresh the grid at training ``step`` if it is due; returns whether it refreshed.
 
         ``density_fn``: (M, 3) field-space points -> (M,) densities, evaluated at a random point of each chosen cell.
         ``step_size``: the marcher's step, which turns density into opacity.
-        ``on_device``: draw the cells and their points on the grid's device and pick the occupied ones there
-        (:meth:`_cells_on_device`), so that the refresh neither reads a value back nor copies from the host: a
-        fixed-shape training step's refresh. Otherwise they are drawn on the host, as they always were (the same
-        cells on every device).
+        ``draw``: what picks the cells a refresh evaluates and a point in each (``step`` -> (M,) cells, (M, 3) points
+        in the unit cube): :meth:`cells_on_host` by default (the same cells on every device), or
+        :meth:`cells_on_device`, whose refresh neither reads a value back nor copies from the host (a sampler whose
+        training step waits for nothing picks it).
         """
         if step % self.update_every != 0:
             return False
-        if on_device:
-            cells, unit = self._cells_on_device(step)
-        else:
-            cells, unit = self._cells_on_host(step)
-            cells, unit = cells.to(self.aabb.device), unit.to(self.aabb)
+        cells, unit = (self.cells_on_host if draw is None else draw)(step)
+        cells, unit = cells.to(self.aabb.device), unit.to(self.aabb)
         density = self._densities(density_fn, self.cell_points(unit), chunk_size)
         occupancy, estimate = self.occupancy.view(-1), density.to(self.occupancy) * step_size
         if step < self.warmup_steps:  # every cell was just evaluated: take the new estimate as it is
@@ -121,7 +121,7 @@ class OccupancyGrid(nn.Module):
         """(M,) flat cell indices -> (M, 3) integer coordinates (x, y, z)."""
         return torch.stack([cells // self.resolution**2, cells // self.resolution % self.resolution, cells % self.resolution], dim=-1)
 
-    def _cells_on_host(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def cells_on_host(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The cells refresh ``step`` evaluates, (M,), and a random point in each, (M, 3) in the unit cube, drawn on
         the host from ``seed + step``: every cell in warm-up, then R^3 / 4 uniform and as many occupied ones."""
         count = self.resolution**3
@@ -136,8 +136,8 @@ class OccupancyGrid(nn.Module):
         coords = self._coordinates(cells)
         return cells, (coords + torch.rand(coords.shape, generator=generator)) / self.resolution
 
-    def _cells_on_device(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """As :meth:`_cells_on_host`, drawn on the grid's device from ``seed + step`` (other random numbers than the
+    def cells_on_device(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`cells_on_host`, drawn on the grid's device from ``seed + step`` (other random numbers than the
         host's) in sizes that do not depend on the grid: the occupied cells are listed by ``nonzero_static`` (padded
         to R^3) and R^3 / 4 of them picked by a random index below their count, a device tensor; an empty grid's
         picks are uniform ones again."""
@@ -172,10 +172,15 @@ class OccupancyGrid(nn.Module):
             self.binary.copy_(self.occupancy > self.occupancy.mean().clamp(max=self.threshold))
 
 
+def field_space_map(to_field: Callable[[torch.Tensor], torch.Tensor] | None) -> Callable[[torch.Tensor], torch.Tensor]:
+    """A marcher's map from sampling-space points to the field space: ``to_field``, or the identity where it is None
+    (a scene without contraction). Compared with None, never asked for its truth (``to_field or identity``): torch
+    2.11's dynamo cannot tell the truth of a bound method and fails a fullgraph compile with "Data-dependent
+    branching"."""
+    return _identity if to_field is None else to_field
+
+
 def _identity(points: torch.Tensor) -> torch.Tensor:
-    """The field-space map of a scene without contraction. (``to_field or identity`` would ask for the truth of a
-    bound method: torch 2.11's dynamo cannot tell it and fails a fullgraph compile with "Data-dependent branching";
-    ``is None`` it can.)"""
     return points
 
 
@@ -223,10 +228,10 @@ def march_rays(
     ``alpha_threshold`` or transmittance below ``early_stop_eps`` (the ray has already ended) are dropped as well.
 
     A training step of fixed shapes marches with :func:`~nerf_lightning.rendering.march_fixed.march_rays_fixed`
-    instead (the occupancy-grid sampler with a ``capacity`` picks it).
+    instead (``model/sampler=fixed_shape_grid``), which tests hold equal to this one.
     """
     n_rays = rays_o.shape[0]
-    to_field = _identity if to_field is None else to_field  # not `or`: see _identity
+    to_field = field_space_map(to_field)
     if perturb:
         shift = torch.rand(n_rays, 1, generator=generator, dtype=rays_o.dtype, device=rays_o.device)
     else:

@@ -1,12 +1,14 @@
 """Volume rendering of packed samples: what every renderer shares, and the choice between them.
 
 A renderer takes N rays and M packed samples of them (:class:`~nerf_lightning.rendering.packed.RaySamples`, any
-sampler's) through a field to pixels. There are two, one file each, chosen by the config group ``model/renderer``:
+sampler's) through a field to pixels, and learns from the samples how: samples of a fixed shape
+(:class:`~nerf_lightning.rendering.packed.FixedShapeSamples`) are composited in one pass over their table by
+every renderer. There are two, one file each, chosen by the config group ``model/renderer``:
 
 - ``rounds`` (:class:`~nerf_lightning.rendering.rounds.RoundsRenderer`, the CPU presets): the field evaluated on the
   next few samples of every ray still alive, so that spent rays stop.
-- ``table`` (:class:`~nerf_lightning.rendering.table.TableRenderer`, the GPU presets): samples of a fixed count laid
-  out on a table rendered in one pass of fixed shapes, so that the host never waits for the device.
+- ``table`` (:class:`~nerf_lightning.rendering.table.TableRenderer`, the GPU presets of the proposal sampler): every
+  sample laid out on a table (a fixed number a ray) rendered in one pass, so that the host never waits for the device.
 
 Both evaluate the field through :func:`evaluate_field`, the one place a field meets samples, and composite with
 :mod:`~nerf_lightning.rendering.compositing`'s weights.
@@ -14,7 +16,7 @@ Both evaluate the field through :func:`evaluate_field`, the one place a field me
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -22,18 +24,32 @@ from nerf_lightning.fields.base import Field
 from nerf_lightning.geometry.space import Rays, SceneSpace
 from nerf_lightning.rendering.packed import RaySamples
 
+if TYPE_CHECKING:
+    from nerf_lightning.rendering.samplers.base import RaySampler
+
 
 class Renderer:
     """What a model asks of its renderer: ``renderer(field, rays, samples, space)`` -> ``rgb`` (N, 3) with the
     background blended in by 1 - accumulation, ``depth`` (N,) (the expected t at which a ray ends, given that it
     ends), ``accumulation`` (N,), ``weights`` (M,) each sample's weight (0 for samples never evaluated) and
-    ``n_evaluated`` (how many samples the field saw). ``fixed_shapes``: whether a training step's sizes are fixed
-    (a compiled step needs it)."""
-
-    fixed_shapes: bool = False
+    ``n_evaluated`` (how many samples the field saw)."""
 
     def __call__(self, field: Field, rays: Rays, samples: RaySamples, space: SceneSpace) -> dict[str, Any]:
         raise NotImplementedError
+
+    def steps_in_one_pass(self, sampler: RaySampler) -> bool:
+        """Whether every training step of ``sampler``'s samples is rendered in one pass, its sizes then independent of
+        the data (what a compiled step needs)."""
+        return False
+
+
+def check_compilable(renderer: Renderer, sampler: RaySampler) -> None:
+    """ValueError naming the keys unless a training step of ``sampler`` through ``renderer`` has sizes that do not
+    depend on the data (``model.compile=true``): any other step would compile anew each time."""
+    if not renderer.steps_in_one_pass(sampler):
+        raise ValueError("model.compile=true needs a training step of fixed shapes: model/sampler=fixed_shape_grid, or "
+                         "model/renderer=table with a sampler of a fixed number of samples a ray (proposal, stratified), "
+                         "as the GPU presets have; any other step's sizes depend on the data, so each would compile anew")
 
 
 def evaluate_field(field: Field, rays: Rays, ray_of: torch.Tensor, mids: torch.Tensor, space: SceneSpace,

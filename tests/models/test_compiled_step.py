@@ -21,7 +21,7 @@ from nerf_lightning.models import radiance_field
 PRESETS = {  # the presets as they are, on small scenes, their buffers sized for 256 rays (as tests/rendering/test_fixed_shapes.py)
     "nerfacto_360_gpu": ["experiment=nerfacto_360_gpu", "data/scene=turntable", "data.scene.size=32", "data.scene.n_photos=16"],
     "fast_blender_gpu": ["experiment=fast_blender_gpu", "data/scene=procedural", "data.scene.size=32", "model.sampler.grid.resolution=32",
-                         "model.sampler.capacity=16384", "model.sampler.march_capacity=65536"],
+                         "model.sampler.samples_per_step=16384", "model.sampler.density_pass_samples=65536"],
 }
 
 
@@ -92,7 +92,7 @@ def test_the_rays_a_step_follow_the_sample_budget_read_a_step_late_and_compile_o
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
     budget, rays = RayBudget(fill=0.9, min_rays=64, max_rays=4096, multiple=64), StepRays()
     plain, plain_losses = fit("fast_blender_gpu", compile=False, steps=12, callbacks=[budget, rays])
-    # 256 rays want far more than the capacity of 16384 samples (the grid starts full): fewer rays, once the count is back
+    # 256 rays want far more than the 16384 samples a step (the grid starts full): fewer rays, once the count is back
     assert rays.rays[0] == 256 and rays.rays[-1] < 256
     for step in range(1, 12):  # each step's rays sized from what an earlier step's wanted, never its own
         if rays.rays[step] != rays.rays[step - 1]:
@@ -108,9 +108,10 @@ def test_the_rays_a_step_follow_the_sample_budget_read_a_step_late_and_compile_o
     assert len(_debug_get_cache_entry_list(radiance_field.RadianceFieldModule.step_losses.__code__)) == 1
 
 
-def test_a_ray_budget_needs_a_sampler_of_fixed_capacity(scene_cache, monkeypatch):
+def test_a_ray_budget_needs_a_sampler_of_a_fixed_number_of_samples_a_step(scene_cache, monkeypatch):
     monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(scene_cache))
-    with pytest.raises(ValueError, match="callbacks.ray_budget sizes the rays a step to an occupancy grid's model.sampler.capacity"):
+    with pytest.raises(ValueError, match="callbacks.ray_budget sizes the rays a step to fill the sampler's samples a step, and "
+                                         "OccupancyGridSampler .* use model/sampler=fixed_shape_grid"):
         cfg = compose_config(["experiment=fast", "data.scene.size=32", "data.val_every=null"])
         trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False, callbacks=[RayBudget()])
         trainer.fit(instantiate(cfg.model), datamodule=instantiate(cfg.data))

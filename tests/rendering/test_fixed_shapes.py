@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.rendering import OccupancyGrid, OccupancyGridSampler, RoundsRenderer, TableRenderer
+from nerf_lightning.rendering import FixedShapeGridSampler, FixedShapeSamples, OccupancyGrid, OccupancyGridSampler, RoundsRenderer, TableRenderer
 from nerf_lightning.rendering.march_fixed import march_rays_fixed
 from nerf_lightning.rendering.occupancy import march_rays
 from nerf_lightning.rendering.packed import RaySamples
@@ -30,10 +30,10 @@ def test_a_fixed_capacity_holds_the_same_steps_in_order_then_padding_of_zero_wid
     assert int(real.sum()) == len(variable) and bool(real[: len(variable)].all()) and not bool(real[len(variable):].any())
     for name in ("ray_indices", "t_starts", "t_ends"):
         torch.testing.assert_close(getattr(fixed, name)[: len(variable)], getattr(variable, name))
-    assert bool((fixed.ray_indices[len(variable):] == 100).all()) and bool(fixed.extras["complete"].all())
+    assert bool((fixed.ray_indices[len(variable):] == 100).all()) and bool(fixed.complete.all())
     short = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=len(variable) // 2, reach=reach)
     cut = int(short.ray_indices[-1])
-    assert short.extras["complete"].tolist() == [ray < cut for ray in range(100)]
+    assert short.complete.tolist() == [ray < cut for ray in range(100)]
 
 
 def test_the_density_pass_keeps_what_the_variable_march_keeps_in_a_fixed_capacity():
@@ -51,7 +51,7 @@ def test_the_density_pass_keeps_what_the_variable_march_keeps_in_a_fixed_capacit
                        march_capacity=len(everything) + 10, **options)
     for name in ("ray_indices", "t_starts", "t_ends"):
         torch.testing.assert_close(getattr(fixed, name)[: len(variable)], getattr(variable, name))
-    assert not (fixed.t_ends > fixed.t_starts)[len(variable):].any() and bool(fixed.extras["complete"].all())
+    assert not (fixed.t_ends > fixed.t_starts)[len(variable):].any() and bool(fixed.complete.all())
 
 
 def test_rays_that_fit_counts_what_the_rays_held_whole_want():
@@ -62,17 +62,17 @@ def test_rays_that_fit_counts_what_the_rays_held_whole_want():
     reach = 2.0 * 3.0**0.5
     wanted = len(march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False))  # every occupied step of the 400 rays
     whole = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted + 10, reach=reach)
-    assert float(whole.extras["rays_that_fit"]) == pytest.approx((wanted + 10) * 400 / wanted)
+    assert float(whole.rays_that_fit) == pytest.approx((wanted + 10) * 400 / wanted)
     # a quarter of what they want: the estimate from the rays held whole (the first ones), near the whole batch's
     short = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 4, reach=reach)
-    assert float(short.extras["rays_that_fit"]) == pytest.approx((wanted // 4) * 400 / wanted, rel=0.3)
+    assert float(short.rays_that_fit) == pytest.approx((wanted // 4) * 400 / wanted, rel=0.3)
     # with the density pass: the fewer of the two buffers' counts
     field = BallField()
     pruned = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, capacity=wanted // 8, reach=reach,
                         march_capacity=wanted + 10, density_fn=field.density, alpha_threshold=1e-3, early_stop_eps=1e-4)
     kept = len(march_rays(grid, rays_o, rays_d, t_enter, t_exit, 0.05, False, density_fn=field.density, alpha_threshold=1e-3,
                           early_stop_eps=1e-4))
-    assert float(pruned.extras["rays_that_fit"]) == pytest.approx(min((wanted // 8) * 400 / kept, (wanted + 10) * 400 / wanted))
+    assert float(pruned.rays_that_fit) == pytest.approx(min((wanted // 8) * 400 / kept, (wanted + 10) * 400 / wanted))
 
 
 class NoTruth:
@@ -107,31 +107,66 @@ def test_one_pass_over_the_table_equals_the_rounds_in_values_and_gradients(sampl
     rays_o, rays_d = rays_towards_origin(64, seed=7, spread=0.2)
     space = SceneSpace(2.0, 6.0, background=(1.0, 0.5, 0.0))
     rays = space.rays(rays_o, rays_d)
-    if sampler == "occupancy":  # the rounds render the variable march, the table its fixed-capacity twin (padded)
+    if sampler == "occupancy":  # the rounds render the variable march, either renderer its fixed-capacity twin (padded)
         t_enter, t_exit = space.ray_range(rays, grid.aabb)
         table_samples = march_rays_fixed(grid, rays_o, rays_d, t_enter, t_exit, 0.02, False, capacity=20_000, reach=2.0 * 3.0**0.5)
         round_samples = OccupancyGridSampler(grid, step_size=0.02).sample(rays, space, field, perturb=False)
+        assert isinstance(table_samples, FixedShapeSamples)
+        one_pass = (TableRenderer(), RoundsRenderer())  # the samples' shape tells the rounds renderer too
     else:
         t = torch.linspace(2.0, 6.0, 65)
         table_samples = round_samples = RaySamples.from_edges(t.expand(64, 65).contiguous())
+        one_pass = (TableRenderer(),)
     results = []
     for renderer, samples in ((RoundsRenderer(early_stop_eps=0.0, samples_per_round=7), round_samples),
-                              (TableRenderer(), table_samples)):
+                              *((renderer, table_samples) for renderer in one_pass)):
         field.scale.grad = None
         out = renderer(field, rays, samples, space)
         (out["rgb"].sum() + out["depth"].sum()).backward()
         results.append((out, field.scale.grad.clone()))
-    (rounds, rounds_grad), (table, table_grad) = results
-    for key in ("rgb", "depth", "accumulation"):
-        torch.testing.assert_close(table[key], rounds[key])
+    (rounds, rounds_grad), *tables = results
     real = len(round_samples)
-    torch.testing.assert_close(table["weights"][:real], rounds["weights"])
-    assert not table["weights"][real:].any()
-    torch.testing.assert_close(table_grad, rounds_grad)
-    padded = RoundsRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, table_samples, space)  # the rounds skip padding
+    for table, table_grad in tables:
+        for key in ("rgb", "depth", "accumulation"):
+            torch.testing.assert_close(table[key], rounds[key])
+        torch.testing.assert_close(table["weights"][:real], rounds["weights"])
+        assert not table["weights"][real:].any()
+        torch.testing.assert_close(table_grad, rounds_grad)
+    table = tables[0][0]
+    # the same samples without their table's shape go in rounds, which skip the padding
+    packed = RaySamples(table_samples.ray_indices, table_samples.t_starts, table_samples.t_ends, table_samples.n_rays)
+    padded = RoundsRenderer(early_stop_eps=0.0, samples_per_round=7)(field, rays, packed, space)
     torch.testing.assert_close(padded["rgb"], rounds["rgb"])
     samples = table_samples
     assert int(table["n_evaluated"]) == int((samples.t_ends > samples.t_starts).sum())
+
+
+def test_the_fixed_shape_sampler_trains_on_what_the_occupancy_grid_sampler_marches_and_evaluates_as_it():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8)
+    grid.mark_from_density(BallField().density, step_size=0.02)
+    field = BallField()
+    rays_o, rays_d = rays_towards_origin(64, seed=7, spread=0.2)
+    space = SceneSpace(2.0, 6.0)
+    rays = space.rays(rays_o, rays_d)
+    fixed, variable = FixedShapeGridSampler(grid, step_size=0.02, samples_per_step=20_000), OccupancyGridSampler(grid, step_size=0.02)
+    torch.manual_seed(3)  # the same random shift of each ray's steps
+    train_fixed = fixed.sample(rays, space, field, perturb=True)
+    torch.manual_seed(3)
+    train_variable = variable.sample(rays, space, field, perturb=True)
+    assert isinstance(train_fixed, FixedShapeSamples) and len(train_fixed) == 20_000 and bool(train_fixed.complete.all())
+    for name in ("ray_indices", "t_starts", "t_ends"):
+        torch.testing.assert_close(getattr(train_fixed, name)[: len(train_variable)], getattr(train_variable, name))
+    renderer = RoundsRenderer(early_stop_eps=0.0)
+    torch.testing.assert_close(renderer(field, rays, train_fixed, space)["rgb"], renderer(field, rays, train_variable, space)["rgb"])
+    with torch.no_grad():  # evaluation: every occupied step, as the occupancy-grid sampler marches them
+        evaluated = fixed.sample(rays, space, field, perturb=False)
+        assert type(evaluated) is RaySamples
+        torch.testing.assert_close(evaluated.t_starts, variable.sample(rays, space, field, perturb=False).t_starts)
+    calls = []
+    grid.cells_on_device = lambda step: (calls.append(step), OccupancyGrid.cells_on_device(grid, step))[1]
+    fixed.update(0, field)  # its refreshes draw their cells on the device
+    variable.update(16, field)
+    assert calls == [0]
 
 
 # a training step of the GPU presets, counted on the CPU with everything nerf-train runs around it (the default
@@ -146,7 +181,7 @@ PRESETS = {  # the presets as they are, on small scenes, their buffers sized for
     "nerfacto_360_gpu": ["experiment=nerfacto_360_gpu", "data/scene=turntable", "data.scene.size=32", "data.scene.n_photos=16"],
     # the grid refreshed every other step, past its warm-up from the second: the refreshes on the device counted too
     "fast_blender_gpu": ["experiment=fast_blender_gpu", "data/scene=procedural", "data.scene.size=32", "model.sampler.grid.resolution=32",
-                         "model.sampler.capacity=16384", "model.sampler.march_capacity=65536",
+                         "model.sampler.samples_per_step=16384", "model.sampler.density_pass_samples=65536",
                          "model.sampler.grid.update_every=2", "model.sampler.grid.warmup_steps=2"],
 }
 
@@ -170,22 +205,37 @@ def test_a_fixed_shape_training_step_never_waits_for_the_device(preset, tmp_path
     assert {key: value for key, value in steps[-1].items() if key != HOST_DATA} in ({}, {"aten._local_scalar_dense": 1}), steps
 
 
-def test_a_renderer_of_an_old_config_is_the_mode_its_flag_named():
-    """Checkpoints and configs from before model/renderer=rounds|table name VolumeRenderer with fixed_shapes."""
-    from hydra.utils import instantiate
-
-    old = {"_target_": "nerf_lightning.rendering.VolumeRenderer", "early_stop_eps": 1e-3, "samples_per_round": 8,
-           "gradient_scaling_distance": 1.0, "fixed_shapes": True}
-    table = instantiate(old)
-    assert isinstance(table, TableRenderer) and table.fixed_shapes and table.gradient_scaling_distance == 1.0
-    assert (table.rounds.early_stop_eps, table.rounds.samples_per_round) == (1e-3, 8)
-    rounds = instantiate({**old, "fixed_shapes": False})
-    assert isinstance(rounds, RoundsRenderer) and not rounds.fixed_shapes and rounds.samples_per_round == 8
-
-
-def test_the_old_renderer_keys_are_answered_with_the_new_group():
+def test_the_old_renderer_and_capacity_keys_are_answered_with_the_new_ones():
     from nerf_lightning.config import renamed_key_message
 
-    assert "use model/renderer=table for a step of fixed shapes" in renamed_key_message(["model.renderer.fixed_shapes=true"])
+    assert "use model/sampler=fixed_shape_grid (an occupancy grid) or model/renderer=table" in renamed_key_message(
+        ["model.renderer.fixed_shapes=true"])
     assert "use model/renderer=rounds" in renamed_key_message(["model/renderer=volume"])
     assert renamed_key_message(["model/renderer=table", "model.renderer.samples_per_round=8"]) is None
+    assert renamed_key_message(["model.sampler.capacity=16384"]).endswith(
+        "use model.sampler.samples_per_step (with model/sampler=fixed_shape_grid)")
+    assert "use model.sampler.density_pass_samples" in renamed_key_message(["model.sampler.march_capacity=65536"])
+
+
+def test_an_occupancy_grid_sampler_of_an_old_config_with_a_capacity_is_answered_in_one_line():
+    grid = OccupancyGrid(UNIT_BOX, resolution=8)
+    # the keys every config of before 0.4 had, null: as they were
+    OccupancyGridSampler(grid, step_size=0.02, capacity=None, march_capacity=None, early_stop_eps=1e-4)
+    with pytest.raises(ValueError, match="use model/sampler=fixed_shape_grid with model.sampler.samples_per_step=16384"):
+        OccupancyGridSampler(grid, step_size=0.02, capacity=16384, march_capacity=None)
+
+
+def test_the_fixed_shape_preset_composes_to_the_fixed_shape_sampler_and_compiles():
+    from hydra.utils import instantiate
+
+    from nerf_lightning.config import compose_config
+    from nerf_lightning.rendering.renderer import check_compilable
+
+    model = compose_config(["experiment=fast_blender_gpu", "paths.output_dir=unused"]).model
+    assert (model.sampler.samples_per_step, model.sampler.density_pass_samples) == (262144, 1048576)
+    sampler, renderer = instantiate(model.sampler), instantiate(model.renderer)
+    assert isinstance(sampler, FixedShapeGridSampler) and type(renderer) is RoundsRenderer
+    check_compilable(renderer, sampler)  # the samples tell the renderer: a step of fixed shapes
+    check_compilable(TableRenderer(), sampler)
+    with pytest.raises(ValueError, match="model.compile=true needs a training step of fixed shapes"):
+        check_compilable(renderer, OccupancyGridSampler(sampler.grid))

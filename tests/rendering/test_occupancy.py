@@ -250,7 +250,7 @@ def test_a_grid_built_from_the_procedural_scenes_true_density_marks_its_surfaces
 def test_grid_refresh_schedule_warmup_then_ema(on_device):
     grid = OccupancyGrid(UNIT_BOX, resolution=8, update_every=4, warmup_steps=8, decay=0.5, threshold=0.01, seed=3)
     update = grid.update
-    grid.update = lambda *args, **kwargs: update(*args, **kwargs, on_device=on_device)
+    grid.update = lambda *args, **kwargs: update(*args, **kwargs, draw=grid.cells_on_device if on_device else None)
     calls = []
 
     def constant(value):
@@ -269,8 +269,9 @@ def test_grid_refresh_schedule_warmup_then_ema(on_device):
     halved = torch.isclose(grid.occupancy, torch.tensor(0.05))
     assert (halved | torch.isclose(grid.occupancy, torch.tensor(0.1))).all() and 0 < halved.sum() <= 256  # refreshed cells halve (EMA), the others keep their estimate
     again = OccupancyGrid(UNIT_BOX, resolution=8, update_every=4, warmup_steps=8, decay=0.5, seed=3)
-    again.update(4, constant(1.0), step_size=0.1, on_device=on_device)
-    again.update(8, constant(0.0), step_size=0.1, on_device=on_device)
+    draw = again.cells_on_device if on_device else again.cells_on_host
+    again.update(4, constant(1.0), step_size=0.1, draw=draw)
+    again.update(8, constant(0.0), step_size=0.1, draw=draw)
     assert torch.equal(again.occupancy, grid.occupancy)  # refreshes are seeded by step: a resumed run refreshes alike
 
 
@@ -279,7 +280,7 @@ def test_a_refresh_on_the_device_picks_occupied_cells_and_reads_nothing_back():
     grid.binary.zero_()
     grid.binary[2:4, 5, 1:7] = True  # 12 occupied cells
     occupied = set(grid.binary.flatten().nonzero()[:, 0].tolist())
-    cells, unit = grid._cells_on_device(step=3)
+    cells, unit = grid.cells_on_device(step=3)
     assert cells.shape == (256,) and unit.shape == (256, 3)
     picked = set(cells[128:].tolist())
     assert picked <= occupied and len(picked) == 12  # 128 picks among 12 cells: each of them, and only them
@@ -287,10 +288,10 @@ def test_a_refresh_on_the_device_picks_occupied_cells_and_reads_nothing_back():
     offset = unit * 8 - grid._coordinates(cells)  # each point inside its own cell
     assert (offset >= -1e-5).all() and (offset <= 1 + 1e-5).all()
     grid.binary.zero_()  # an empty grid: the picks fall back to uniform cells
-    cells, _ = grid._cells_on_device(step=4)
+    cells, _ = grid.cells_on_device(step=4)
     assert torch.equal(cells[128:], cells[:128])
     with HostSyncs() as syncs:
-        grid.update(5, lambda points: torch.ones(len(points)), step_size=0.1, on_device=True)
+        grid.update(5, lambda points: torch.ones(len(points)), step_size=0.1, draw=grid.cells_on_device)
     assert syncs.total == 0, syncs.counts
     with HostSyncs() as syncs:  # the host's draws list the occupied cells: a size that depends on the grid
         grid.update(6, lambda points: torch.ones(len(points)), step_size=0.1)

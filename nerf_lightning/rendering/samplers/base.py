@@ -24,10 +24,16 @@ class RaySampler(nn.Module):
     """The interface every sampler implements (nerfacc's ``AbstractEstimator``, nerfstudio's ``Sampler``).
 
     ``grid``: the occupancy grid a sampler marches through (drawn by the viewer), None for the others.
-    ``capacity``: the fixed number of samples of a training step (a step of fixed shapes), None where it varies.
+    ``samples_per_step``: the fixed number of samples a training step takes (their count then does not depend on
+    the rays: :class:`~nerf_lightning.rendering.packed.FixedShapeSamples`; a ray budget,
+    :class:`~nerf_lightning.models.ray_budget.RayBudget`, sizes the rays to fill it), None where it varies.
+    ``samples_on_table``: whether its training samples come laid out on a table (``RaySamples.slots``: a fixed
+    number a ray, as :meth:`RaySamples.from_edges <nerf_lightning.rendering.packed.RaySamples.from_edges>` gives),
+    which ``model/renderer=table`` renders in one pass.
     """
 
-    capacity: int | None = None
+    samples_per_step: int | None = None
+    samples_on_table: bool = True
 
     def __init__(self) -> None:
         super().__init__()

@@ -9,7 +9,7 @@ The interface a splat model calls:
 - ``after_backward(gaussians, projection, width, height)``: the step's view has been drawn and its loss
   backpropagated; ``projection.means2d.grad`` holds the screen-space gradient of the Gaussians it saw, and, where
   ``absgrad`` asked for it, ``projection.means2d.absgrad`` (M, 2) the sum over the pixels of the absolute values of
-  each pixel's share of it (:func:`~nerf_lightning.splats.rasterize.keep_absgrad`).
+  each pixel's share of it (:func:`~nerf_lightning.splats.rasterize_core.keep_absgrad`).
 - ``after_step(gaussians, step, replace, means_lr)``: the optimiser has stepped (``step`` steps done) with the
   means at learning rate ``means_lr`` (MCMC scales its noise by it): refine if it is time.
 - ``loss(gaussians)``: a regulariser the model adds to its loss (MCMC's), or None.
@@ -101,7 +101,7 @@ class DefaultStrategy:
             grad = getattr(projection.means2d, "absgrad", None)
             if grad is None:
                 raise RuntimeError("model.strategy.absgrad needs the rasteriser's absolute screen-space gradients, and "
-                                   "this view was drawn without them (rasterize_view(..., absgrad=True) keeps them)")
+                                   "this view was drawn without them (drawer.rasterize(..., absgrad=True) keeps them)")
         n = len(gaussians)
         if self.grad_sum is None or self.grad_sum.shape[0] != n or self.grad_sum.device != grad.device:
             self.grad_sum, self.seen = grad.new_zeros(n), grad.new_zeros(n)

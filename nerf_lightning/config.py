@@ -84,7 +84,7 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
         key = key.lstrip("+~").split("@", 1)[0]
         if key == "viewer" and value.strip().lower() in ("true", "false", "yes", "no", "on", "off", "1", "0"):
             # Hydra takes a config group's choice as a name, and true is not one
-            return (f"'viewer={value}' was replaced {VIEWER_03} (see the README): use viewer=live for the live view, "
+            return (f"'viewer={value}' was replaced {VIEWER_03} (see CHANGELOG.md): use viewer=live for the live view, "
                     "or leave viewer out for none")
         if key == "model.renderer.fixed_shapes":
             return (f"'{key}' was replaced {MODES_04} (see CHANGELOG.md): for a step of fixed shapes use "
@@ -94,14 +94,14 @@ def renamed_key_message(overrides: Sequence[str]) -> str | None:
             return (f"'model/renderer=volume' was replaced {MODES_04} (see CHANGELOG.md): use model/renderer=rounds "
                     "(its keys are the same), or model/renderer=table for a step of fixed shapes (the proposal sampler)")
         if key == "data" and value.strip() in RENAMED_DATA:
-            return f"'data={value.strip()}' was replaced {DATA_04} (see the README): use {RENAMED_DATA[value.strip()]}"
+            return f"'data={value.strip()}' was replaced {DATA_04} (see CHANGELOG.md): use {RENAMED_DATA[value.strip()]}"
         if key == "model.rasterizer" and value.strip() in ("auto", "tiles", "pairs"):
             # the name of a group's choice, where a value was written before (model.rasterizer.* are its keys now)
             return f"'{override}' was replaced {RASTERIZER_04} (see CHANGELOG.md): use model/rasterizer={value.strip()}"
         for old, (new, note, why) in RENAMED_KEYS.items():
             if key == old or key.startswith(old + "."):
                 now = new + key[len(old):] + (f" ({note})" if note else "")
-                return f"'{key}' was moved {why} (see the README): use {now}"
+                return f"'{key}' was moved {why} (see CHANGELOG.md): use {now}"
     return splat_key_message(overrides)
 
 
@@ -113,5 +113,5 @@ def splat_key_message(overrides: Sequence[str]) -> str | None:
     for key in keys:
         if key in SPLAT_RENAMED_KEYS:
             new, _, why = SPLAT_RENAMED_KEYS[key]
-            return f"'{key}' was moved for the splats {why} (see the README): use {new}"
+            return f"'{key}' was moved for the splats {why} (see CHANGELOG.md): use {new}"
     return None

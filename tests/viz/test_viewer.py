@@ -309,7 +309,7 @@ def test_nerf_train_viewer_true_names_its_successor_in_one_line(tmp_path):
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == ["nerf-train: error: 'viewer=true' was replaced in nerf-lightning 0.3, when the live "
-                                                   "viewer became a callback (see the README): use viewer=live for the live view, or "
+                                                   "viewer became a callback (see CHANGELOG.md): use viewer=live for the live view, or "
                                                    "leave viewer out for none"]
 
 

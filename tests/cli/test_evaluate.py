@@ -5,7 +5,6 @@ import logging
 import subprocess
 import sys
 
-import pytest
 
 from nerf_lightning.training import train
 

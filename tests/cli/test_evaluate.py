@@ -5,7 +5,6 @@ import logging
 import subprocess
 import sys
 
-
 from nerf_lightning.training import train
 
 QUIET = ["trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"]

@@ -1,11 +1,9 @@
 """nerf-eval run as a user runs it."""
 
 import json
-import os
+import logging
 import subprocess
 import sys
-
-import pytest
 
 from nerf_lightning.training import train
 
@@ -26,8 +24,10 @@ def test_eval_on_a_missing_second_capture_is_named(tmp_path, make_config):
     assert not (tmp_path / "eval" / "eval.json").exists()
 
 
-@pytest.mark.slow  # trains and evaluates twice; tests/outputs/test_lpips.py holds the network in CI
-def test_eval_adds_lpips_with_weights_and_says_once_why_it_is_absent_without(tmp_path, make_config):
+def test_eval_adds_lpips_with_weights_and_says_once_why_it_is_absent_without(tmp_path, make_config, monkeypatch, caplog):
+    """What nerf-eval calls (evaluate_checkpoint), in this process: without AlexNet weights eval.json says why LPIPS is
+    absent and the log says it once; with a weights file, every view has its LPIPS."""
+    from nerf_lightning.outputs.evaluation import evaluate_checkpoint
     from tests.outputs.test_lpips import written_weights
 
     run = tmp_path / "trained"
@@ -35,19 +35,14 @@ def test_eval_adds_lpips_with_weights_and_says_once_why_it_is_absent_without(tmp
                       "model.sampler.grid.resolution=8", "data.batch_size=64", "trainer.max_steps=2", "data.val_steps=[]",
                       *QUIET, run_dir=run))
     ckpt = run / "checkpoints" / "last.ckpt"
-    environment = {**os.environ, "TORCH_HOME": str(tmp_path / "empty_torch_home")}  # no AlexNet weights in its hub cache
-    command = [sys.executable, "-m", "nerf_lightning.cli.evaluate", f"ckpt_path={ckpt}", "max_views=2", "device=cpu"]
-    skipped = subprocess.run([*command, f"output_dir={tmp_path / 'without'}"], cwd=tmp_path, env=environment,
-                             capture_output=True, text=True, timeout=300)
-    assert skipped.returncode == 0, skipped.stderr[-3000:]
-    said = json.loads((tmp_path / "without" / "eval.json").read_text())
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty_torch_home"))  # no AlexNet weights in its hub cache
+    with caplog.at_level(logging.WARNING):
+        said = evaluate_checkpoint(ckpt, tmp_path / "without", max_views=2)
     assert "lpips" not in said["mean"] and said["lpips"]["skipped"].startswith("LPIPS skipped: no AlexNet weights")
-    assert (skipped.stdout + skipped.stderr).count("LPIPS skipped") == 1
+    assert json.loads((tmp_path / "without" / "eval.json").read_text())["lpips"] == said["lpips"]
+    assert sum("LPIPS skipped" in record.getMessage() for record in caplog.records) == 1
 
     weights = written_weights(tmp_path / "lpips.pth")
-    scored = subprocess.run([*command, f"eval.lpips_weights={weights}", f"output_dir={tmp_path / 'with'}"], cwd=tmp_path,
-                            env=environment, capture_output=True, text=True, timeout=300)
-    assert scored.returncode == 0, scored.stderr[-3000:]
-    said = json.loads((tmp_path / "with" / "eval.json").read_text())
+    said = evaluate_checkpoint(ckpt, tmp_path / "with", max_views=2, lpips_weights=weights)
     assert said["lpips"] == {"network": "LPIPS 0.1, AlexNet", "weights": str(weights)}
-    assert said["mean"]["lpips"] > 0.0 and all(row["lpips"] > 0.0 for row in said["per_view"])
+    assert said["mean"]["lpips"] > 0.0 and len(said["per_view"]) == 2 and all(row["lpips"] > 0.0 for row in said["per_view"])

@@ -5,25 +5,27 @@ import sys
 
 import imageio.v3 as iio
 import numpy as np
-import pytest
 import torch
-import yaml
 
 from tests.cli.test_train import TINY
 from tests.conftest import run_cli
 
 
-@pytest.mark.slow  # a training and two renders (half a minute): out of CI, which renders a run in the other tests here
-def test_train_then_render_from_the_checkpoint(tmp_path):
+def test_train_then_render_from_the_checkpoint(tmp_path, make_config):
+    """nerf-train's and nerf-render's own functions on their composed configs, in this process (the command lines are
+    run by the other tests here)."""
+    from nerf_lightning.cli.render import render
+    from nerf_lightning.config import compose_config
+    from nerf_lightning.training import train
+
     run = tmp_path / "run"
-    run_cli("train", *TINY, f"hydra.run.dir={run}", cwd=tmp_path)
-    config = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())
-    assert config["model"]["field"]["num_frequencies"] == 10 and config["trainer"]["max_steps"] == 40
+    config = make_config(*TINY, run_dir=run)
+    assert config.model.field.num_frequencies == 10 and config.trainer.max_steps == 40
+    train(config)
 
     ckpt = run / "checkpoints" / "last.ckpt"
-    run_cli("render", f"ckpt_path={ckpt}", f"output_dir={tmp_path / 'r1'}", cwd=tmp_path)
-    run_cli("render", f"ckpt_path={ckpt}", "render.scale=2", f"output_dir={tmp_path / 'r2'}", cwd=tmp_path)
-    run_cli("render", f"ckpt_path={ckpt}", "render.scale=3", f"output_dir={tmp_path / 'r3'}", cwd=tmp_path)
+    for scale in (1, 2, 3):
+        render(compose_config([f"ckpt_path={ckpt}", f"render.scale={scale}", f"output_dir={tmp_path / f'r{scale}'}"], "render"))
     same_size = iio.imread(tmp_path / "r1" / "rgb_scale1.png")
     # the checkpoint holds the trained field: at scale 1 it renders exactly the last snapshot
     assert np.array_equal(same_size, iio.imread(run / "snapshots" / "rgb_00_step000040.png"))

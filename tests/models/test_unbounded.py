@@ -65,28 +65,32 @@ def test_an_unbounded_capture_trains_with_a_contracted_field(trained):
     assert 0.0 < model.sampler.grid.binary.float().mean() < 1.0
 
 
-@pytest.mark.slow  # two evaluations (half a minute): out of CI
 def test_eval_on_a_second_file_of_the_capture_matches_the_held_out_split(trained, capture, tmp_path):
+    """What nerf-eval calls (evaluate_checkpoint), in this process: the run's held-out views, and the same views from a
+    second file of the capture, loaded into the trained scene's world."""
+    from nerf_lightning.outputs.evaluation import evaluate_checkpoint
+
     run, _ = trained
     root, _ = capture
     ckpt = run / "checkpoints" / "last.ckpt"
-    run_cli("evaluate", f"ckpt_path={ckpt}", "split=val", f"output_dir={tmp_path / 'own'}", cwd=tmp_path)
-    run_cli("evaluate", f"ckpt_path={ckpt}", f"root={root / 'held_out.json'}", f"output_dir={tmp_path / 'second'}", cwd=tmp_path)
-    own = json.loads((tmp_path / "own" / "eval.json").read_text())
-    second = json.loads((tmp_path / "second" / "eval.json").read_text())
+    own = evaluate_checkpoint(ckpt, tmp_path / "own", split="val", lpips="off")
+    second = evaluate_checkpoint(ckpt, tmp_path / "second", root=root / "held_out.json", lpips="off")
     assert second["views"] == own["views"] == len(HELD_OUT) and second["scene"].endswith("held_out.json")
     # the same views, loaded from another file into the trained scene's world: the same pictures
     for a, b in zip(own["per_view"], second["per_view"]):
         assert a["view"] == b["view"] and a["psnr"] == pytest.approx(b["psnr"], abs=1e-3)
 
 
-@pytest.mark.slow  # three command-line runs (half a minute): out of CI
 def test_export_and_render_map_back_to_the_capture(trained, capture, tmp_path):
+    """nerf-export and nerf-render's own functions on their composed configs, in this process."""
+    from nerf_lightning.cli.export import export
+    from nerf_lightning.cli.render import render
+
     run, _ = trained
     ckpt = run / "checkpoints" / "last.ckpt"
     model, _ = load_model(ckpt)
     for frame in ("scene", "capture"):
-        run_cli("export", f"ckpt_path={ckpt}", "resolution=48", "threshold=5", f"frame={frame}", f"output_dir={tmp_path / frame}", cwd=tmp_path)
+        export(compose_config([f"ckpt_path={ckpt}", "resolution=48", "threshold=5", f"frame={frame}", f"output_dir={tmp_path / frame}"], "export"))
     scene_vertices = np.asarray(read_mesh(tmp_path / "scene" / "mesh.ply").vertices)
     capture_vertices = np.asarray(read_mesh(tmp_path / "capture" / "mesh.ply").vertices)
     assert len(scene_vertices) > 100 and len(scene_vertices) == len(capture_vertices)
@@ -97,7 +101,7 @@ def test_export_and_render_map_back_to_the_capture(trained, capture, tmp_path):
     centre = CAPTURE_FROM_PROCEDURAL[:3, 3].numpy()
     assert np.median(np.linalg.norm(capture_vertices - centre, axis=1)) < 3 * 1.3
 
-    run_cli("render", f"ckpt_path={ckpt}", "render.path=spiral", "render.frames=4", "render.scale=0.5", f"output_dir={tmp_path / 'render'}", cwd=tmp_path)
+    render(compose_config([f"ckpt_path={ckpt}", "render.path=spiral", "render.frames=4", "render.scale=0.5", f"output_dir={tmp_path / 'render'}"], "render"))
     rendered = load_transforms(tmp_path / "render", normalise=False, holdout_every=0)  # the frames load back as a capture
     assert len(rendered.train) == 4 and rendered.train.width == 25
     centres = rendered.train.c2w[:, :3, 3].double()

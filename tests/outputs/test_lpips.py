@@ -10,15 +10,25 @@ from nerf_lightning.outputs.lpips import ALEXNET_FILE, CONVOLUTIONS, LPIPS, load
 
 
 def alexnet_features(seed: int = 0) -> nn.Sequential:
-    """torchvision's ``alexnet().features``, layer for layer, with random weights (what torchvision builds)."""
+    """torchvision's ``AlexNet().features`` as torchvision 0.28 writes it (``torchvision/models/alexnet.py``), with
+    random weights: copied from there, not built from this module's CONVOLUTIONS, so that a wrong channel count, kernel,
+    stride or padding in that table fails the tests that hold LPIPS to it."""
     torch.manual_seed(seed)
-    layers: list[nn.Module] = []
-    for index, out_channels, in_channels, kernel, stride, padding in CONVOLUTIONS:
-        while len(layers) < index:  # the max-pools between the convolutions
-            layers.append(nn.MaxPool2d(kernel_size=3, stride=2))
-        layers += [nn.Conv2d(in_channels, out_channels, kernel, stride, padding), nn.ReLU(inplace=True)]
-    layers.append(nn.MaxPool2d(kernel_size=3, stride=2))
-    return nn.Sequential(*layers)
+    return nn.Sequential(
+        nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2),
+        nn.ReLU(inplace=True),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(64, 192, kernel_size=5, padding=2),
+        nn.ReLU(inplace=True),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+        nn.Conv2d(192, 384, kernel_size=3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(384, 256, kernel_size=3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(256, 256, kernel_size=3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.MaxPool2d(kernel_size=3, stride=2),
+    )
 
 
 def written_weights(path, seed: int = 0, heads: bool = True):
@@ -52,6 +62,34 @@ def test_the_network_is_torchmetrics_lpips_with_the_same_weights(tmp_path, image
     for other in (b, noisy):
         expected = reference(a, other, normalize=True).flatten()
         torch.testing.assert_close(ours(a, other), expected, rtol=1e-4, atol=1e-6)
+
+
+def test_the_reference_backbone_is_torchvisions_alexnet():
+    """Where torchvision is installed: its AlexNet's features, module for module, are the copy the tests hold LPIPS to.
+    (Not in the dev extra: the only torchvision wheel on CI's index is a CUDA build, which does not load beside the CPU
+    torch and then breaks torchmetrics' imports.)"""
+    torchvision = pytest.importorskip("torchvision")
+    assert repr(torchvision.models.alexnet(weights=None).features) == repr(alexnet_features())
+
+
+def test_the_features_lpips_compares_are_alexnets_at_its_five_relus(image):
+    """LPIPS's five feature maps are AlexNet's (torchvision's definition, the same random weights) read after each
+    ReLU, normalised along the channels: the same shapes, so the same strides and pools, and the same values."""
+    features = alexnet_features(seed=1)
+    heads = {f"lin{layer}.model.1.weight": torch.zeros(1, channels, 1, 1) for layer, (_, channels, *_) in enumerate(CONVOLUTIONS)}
+    ours = LPIPS({**{f"features.{key}": value for key, value in features.state_dict().items()}, **heads})
+    images = image.permute(2, 0, 1)[None] * 2.0 - 1.0
+    expected, x = [], (images - ours.shift) / ours.scale
+    with torch.no_grad():
+        for module in features:
+            x = module(x)
+            if isinstance(module, nn.ReLU):
+                expected.append(x / (x.pow(2).sum(dim=1, keepdim=True).sqrt() + 1e-10))
+        got = ours.features(images)
+    assert len(got) == len(expected) == 5
+    for layer, (a, b) in enumerate(zip(got, expected)):
+        assert a.shape == b.shape, f"layer {layer}: {tuple(a.shape)} against AlexNet's {tuple(b.shape)}"
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
 
 
 def test_a_distance_zero_for_the_same_image_symmetric_and_larger_for_blur_than_for_slight_noise(tmp_path, image):

@@ -60,7 +60,7 @@ def mean_colour_score(datamodule) -> float:
 # the preset's own method, shortened: its steps, batch and validation sized for seconds on 2 cores. Each clears the
 # mean colour by 2 to 3 dB in these steps (15.1 and 15.9 dB against 12.9); the bar asks for 1
 PRESETS = {
-    "splat_object_cpu": ["trainer.max_steps=300", "data.patch_size=null", "model.random_count=2000"],
+    "splat_object_cpu": ["trainer.max_steps=300", "data.patch_size=null", "model.start.random.count=2000"],
     "nerfacto_object_cpu": ["trainer.max_steps=150", "data.batch_size=512", "model.sampler.bake_resolution=16"],
 }
 MARGIN_DB = 1.0

@@ -11,7 +11,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from nerf_lightning.data.batches import HeldOutView, StepBatchesDataModule
-from nerf_lightning.data.choices import OBJECT_BOXES, RENDER_PATHS  # noqa: F401 (also read from here)
+from nerf_lightning.data.choices import OBJECT_BOXES, RENDER_PATHS
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background, resolve_mode
 from nerf_lightning.data.object_box import fit_scene_to_box, visual_hull_box

@@ -73,7 +73,7 @@ class RadianceFieldModule(SceneModule):
     """
 
     kind = "radiance_field"
-    # a checkpoint's model config of before 0.4 (the fixed-shape march on the occupancy-grid sampler) read as this one's
+    # a checkpoint's model config of before 0.4 read as this one's (models/radiance_field_config.py)
     upgrade_config = staticmethod(config_before_04)
 
     def __init__(

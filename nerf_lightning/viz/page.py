@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerf_lightning.data.scene_data import RENDER_PATHS
+from nerf_lightning.data.choices import RENDER_PATHS
 from nerf_lightning.data.scene import Views
 from nerf_lightning.models.contract import HasGaussians, Overlay, ShowsOverlays, implements
 from nerf_lightning.viz.keyframes import KeyframePanel

@@ -6,7 +6,7 @@ import torch
 
 from nerf_lightning.data.formats import load_llff
 from nerf_lightning.data.formats.llff import write_poses_bounds
-from nerf_lightning.data.formats.transforms import apply_similarity
+from nerf_lightning.data.formats.shared import apply_similarity
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.io import write_png

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nerf_lightning.data.formats import load_transforms
-from nerf_lightning.data.formats.transforms import apply_similarity
+from nerf_lightning.data.formats.shared import apply_similarity
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 from nerf_lightning.geometry.paths import look_at_point

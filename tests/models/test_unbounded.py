@@ -12,7 +12,7 @@ import torch
 from nerf_lightning.checkpoints import load_model
 from nerf_lightning.config import compose_config
 from nerf_lightning.data.formats import load_transforms
-from nerf_lightning.data.formats.transforms import apply_similarity
+from nerf_lightning.data.formats.shared import apply_similarity
 from nerf_lightning.outputs.mesh import read_mesh
 from nerf_lightning.geometry.cameras import opengl_to_opencv
 from nerf_lightning.training import train

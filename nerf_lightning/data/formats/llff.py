@@ -14,7 +14,7 @@ average camera, looking at the focus depth, with radii the 90th percentile of th
 
 A capture that walks all around its subject (``layout="360"``; COLMAP's ``imgs2poses`` writes the same file for it)
 is not forward-facing: NDC cannot hold it. It is normalised as a ``transforms.json`` capture is
-(:func:`~nerf_lightning.data.formats.transforms.normalising_transform`: centred on the cameras' focus, mean up +z,
+(:func:`~nerf_lightning.data.formats.shared.normalising_transform`: centred on the cameras' focus, mean up +z,
 the farthest camera coordinate 1), for the contraction (``data.contract=true``, ``experiment=nerfacto_360_cpu``),
 and its render path is the orbit other 360 captures get.
 

@@ -41,7 +41,7 @@ import torch
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image, load_mask
-from nerf_lightning.data.formats.shared import CENTRES, apply_similarity, normalising_transform  # noqa: F401 (also read from here)
+from nerf_lightning.data.formats.shared import apply_similarity, normalising_transform
 from nerf_lightning.data.points import SparsePoints, read_ply_points
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w

@@ -1,10 +1,12 @@
 """COLMAP-posed captures in instant-ngp's / nerfstudio's ``transforms.json``.
 
 Intrinsics are global keys, overridable per frame: ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h`` (or
-``camera_angle_x`` / ``camera_angle_y`` for the focal lengths, and the image's size for the rest), and OpenCV
-distortion ``k1``, ``k2``, ``p1``, ``p2`` (``k3`` too). Each frame has ``file_path`` (relative to the json's folder)
-and ``transform_matrix`` (OpenGL camera-to-world, as in the Blender scenes). Frames whose image is missing are
-skipped with one warning naming them. Images with distortion are undistorted with kornia onto the same pinhole K.
+``camera_angle_x`` / ``camera_angle_y`` for the focal lengths, and the image's size for the rest), and the lens:
+``camera_model`` with OpenCV's distortion ``k1``, ``k2``, ``p1``, ``p2`` (``k3`` too), or ``OPENCV_FISHEYE`` with
+``k1`` to ``k4``. Each frame has ``file_path`` (relative to the json's folder) and ``transform_matrix`` (OpenGL
+camera-to-world, as in the Blender scenes). Frames whose image is missing are skipped with one warning naming them.
+Images with distortion are undistorted onto a pinhole camera of their size (:mod:`~nerf_lightning.data.formats.lenses`:
+the same K, or for a fisheye the K that keeps every pixel inside the photo).
 
 The world is normalised as nerfstudio's ``auto_orient_and_center_poses`` (orientation ``up``) and scale do:
 centred on the cameras' focus (``centre="focus"``: the point nearest every optical axis, where an inward-facing
@@ -34,21 +36,19 @@ import logging
 import math
 from pathlib import Path
 
-import kornia
 import numpy as np
 import torch
 
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image, load_mask
+from nerf_lightning.data.formats.lenses import Lens, read_lens
 from nerf_lightning.data.formats.shared import apply_similarity, normalising_transform
 from nerf_lightning.data.points import SparsePoints, read_ply_points
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
 
 log = logging.getLogger(__name__)
-
-DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 
 
 def _number(frame: dict, meta: dict, key: str, path: Path, where: str) -> float | None:
@@ -64,8 +64,9 @@ def _number(frame: dict, meta: dict, key: str, path: Path, where: str) -> float 
     return value
 
 
-def frame_intrinsics(frame: dict, meta: dict, width: int, height: int, path: Path, where: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """K (3, 3) and OpenCV distortion (5,) of one frame of a ``width`` x ``height`` image, per-frame keys first."""
+def frame_intrinsics(frame: dict, meta: dict, width: int, height: int, path: Path, where: str) -> tuple[torch.Tensor, Lens]:
+    """K (3, 3) and lens (:func:`~nerf_lightning.data.formats.lenses.read_lens`) of one frame of a ``width`` x
+    ``height`` image, per-frame keys first."""
     def get(key: str) -> float | None:
         return _number(frame, meta, key, path, where)
 
@@ -84,15 +85,14 @@ def frame_intrinsics(frame: dict, meta: dict, width: int, height: int, path: Pat
     fl_x, fl_y = fl_x or fl_y, fl_y or fl_x
     cx, cy = get("cx"), get("cy")
     K = torch.tensor([[fl_x, 0.0, width / 2.0 if cx is None else cx], [0.0, fl_y, height / 2.0 if cy is None else cy], [0.0, 0.0, 1.0]])
-    distortion = torch.tensor([get(key) or 0.0 for key in DISTORTION_KEYS])
-    return K, distortion
+    return K, read_lens(frame.get("camera_model", meta.get("camera_model", "OPENCV")), get, f"{path}: {where}")
 
 
-def undistort(image: torch.Tensor, K: torch.Tensor, distortion: torch.Tensor) -> torch.Tensor:
-    """(H, W, 3) image through a lens with OpenCV ``distortion`` (k1, k2, p1, p2, k3) -> the pinhole image of the same K."""
-    if not distortion.any():
+def undistort(image: torch.Tensor, K: torch.Tensor, lens: Lens) -> torch.Tensor:
+    """(H, W, C) image taken through ``lens`` -> the pinhole image of K (3, 3) (the K :func:`frame_lenses` gives)."""
+    if not lens.distorts():
         return image
-    return kornia.geometry.calibration.undistort_image(image.permute(2, 0, 1)[None], K[None], distortion[None])[0].permute(1, 2, 0)
+    return lens.undistort(image, K)
 
 
 def load_transforms(root: str | Path, downscale: int = 1, holdout_every: int = 8, normalise: bool = True, near: float = 0.05,
@@ -188,15 +188,15 @@ def frames_with_images(path: Path, frames: list[dict]) -> list[PresentFrame]:
 
 
 def frame_lenses(path: Path, meta: dict, present: list[PresentFrame], downscale: int
-                 ) -> tuple[dict[Path, tuple[torch.Tensor, torch.Tensor]], dict[Path, tuple[int, int]]]:
-    """Of each image path of ``present``: its (3, 3) K, scaled down by ``downscale``, and (5,) OpenCV distortion
-    (:func:`frame_intrinsics`); and its full (height, width). From the images' headers, before anything is decoded."""
+                 ) -> tuple[dict[Path, tuple[torch.Tensor, Lens]], dict[Path, tuple[int, int]]]:
+    """Of each image path of ``present``: the (3, 3) K of its undistorted view, scaled down by ``downscale``, and its
+    lens (:func:`frame_intrinsics`); and its full (height, width). From the images' headers, before anything is decoded."""
     lenses, sizes = {}, {}
     for number, frame, image_path in present:
         height, width = sizes[image_path] = image_size(image_path)
-        K, distortion = frame_intrinsics(frame, meta, width, height, path, f"frame {number} ({frame['file_path']}): ")
+        K, lens = frame_intrinsics(frame, meta, width, height, path, f"frame {number} ({frame['file_path']}): ")
         K[:2] /= downscale  # downscale first, then undistort the smaller image: the distortion is in normalised coordinates
-        lenses[image_path] = (K, distortion)
+        lenses[image_path] = lens.pinhole(K, height // downscale, width // downscale)
     return lenses, sizes
 
 
@@ -254,7 +254,7 @@ def sparse_points(path: Path, meta: dict, world_from_capture: torch.Tensor) -> S
 
 
 def _masks(path: Path, frames: list[PresentFrame], sizes: dict[Path, tuple[int, int]],
-           lenses: dict[Path, tuple[torch.Tensor, torch.Tensor]], downscale: int, image_cache: str | None) -> torch.Tensor | None:
+           lenses: dict[Path, tuple[torch.Tensor, Lens]], downscale: int, image_cache: str | None) -> torch.Tensor | None:
     """(N, H, W) bool masks of ``frames`` ((number, frame, image path), in the views' order) from their ``mask_path``,
     downscaled and undistorted as their images; None where no frame has one. ValueError naming the frames without one
     where only some have one, and naming a mask that is missing or of another size than its image."""
@@ -271,18 +271,18 @@ def _masks(path: Path, frames: list[PresentFrame], sizes: dict[Path, tuple[int, 
             raise ValueError(f"{path}: frame {number}: 'mask_path' must be a file name, got {frame['mask_path']!r}")
         mask_paths.append(path.parent / frame["mask_path"])
         shared = image_of.setdefault(mask_paths[-1], image_path)
-        if shared != image_path and (sizes[shared] != sizes[image_path] or not all(
-                torch.equal(a, b) for a, b in zip(lenses[shared], lenses[image_path]))):
+        if shared != image_path and (sizes[shared] != sizes[image_path] or not torch.equal(lenses[shared][0], lenses[image_path][0])
+                                     or lenses[shared][1] != lenses[image_path][1]):
             raise ValueError(f"{path}: frame {number}: 'mask_path' {frame['mask_path']} is also the mask of {shared.name}, whose "
                              "size or lens differs: frames of different cameras need masks of their own")
 
     def decode(mask_path: Path) -> torch.Tensor:
         image_path = image_of[mask_path]
         mask = load_mask(mask_path, size=sizes[image_path], downscale_by=downscale)
-        K, distortion = lenses[image_path]
-        if not distortion.any():
+        K, lens = lenses[image_path]
+        if not lens.distorts():
             return mask
-        return undistort(mask[..., None].float().expand(-1, -1, 3), K, distortion)[..., 0] >= 0.5
+        return undistort(mask[..., None].float().expand(-1, -1, 3), K, lens)[..., 0] >= 0.5
 
     return stack_images(mask_paths, decode, cache=image_cache, label=f"{path.parent.name}-masks",
                         recipe={"loader": "transforms-masks", "downscale": downscale}, depends_on=[path])

@@ -94,8 +94,13 @@ def test_images_of_different_sizes_are_named(tmp_path, capsys):
         ({"fl_x": 10.0, "frames": [{"file_path": "images/a.png", "transform_matrix": np.full((4, 4), np.nan).tolist()}]}, "non-finite"),
         ({"fl_x": 10.0, "frames": [{"file_path": "images/a.png", "transform_matrix": (2 * np.eye(4)).tolist()}]}, "last row"),
         ({"fl_x": 10.0, "frames": [{"file_path": "images/a.png", "transform_matrix": np.diag([2.0, 1.0, 1.0, 1.0]).tolist()}]}, "not rigid"),
+        ({"fl_x": 10.0, "camera_model": "EQUIRECTANGULAR", "frames": [{"file_path": "images/a.png", "transform_matrix": np.eye(4).tolist()}]},
+         "'camera_model' is 'EQUIRECTANGULAR': this loader reads"),
+        ({"fl_x": 10.0, "camera_model": "OPENCV_FISHEYE", "k1": 0.1, "k2": 0.0, "k4": 0.0,
+          "frames": [{"file_path": "images/a.png", "transform_matrix": np.eye(4).tolist()}]}, "OPENCV_FISHEYE needs k1, k2, k3, k4: 'k3' missing"),
     ],
-    ids=["no_frames", "no_transform_matrix", "no_intrinsics", "not_4x4", "non_finite", "bad_last_row", "not_rigid"],
+    ids=["no_frames", "no_transform_matrix", "no_intrinsics", "not_4x4", "non_finite", "bad_last_row", "not_rigid", "unknown_camera_model",
+         "fisheye_without_k3"],
 )
 def test_a_bad_transforms_json_names_the_file_and_key(tmp_path, capsys, meta, expected):
     root = tmp_path / "capture"

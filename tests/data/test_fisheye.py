@@ -15,12 +15,12 @@ from kornia.metrics import psnr
 from kornia.geometry.camera import distort_points_kannala_brandt, undistort_points_kannala_brandt
 
 from nerf_lightning.data.formats import load_transforms
-from nerf_lightning.data.formats.lenses import FisheyeLens, pixel_centres
+from nerf_lightning.data.formats.lenses import FisheyeLens
 from nerf_lightning.data.formats.procedural import camera_positions, shade, trace
 from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.images import downscale, load_image
 from nerf_lightning.geometry.cameras import look_at, opengl_to_opencv
-from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.geometry.rays import image_pixels, image_rays
 from nerf_lightning.io import write_json, write_png
 from nerf_lightning.training import train
 
@@ -37,9 +37,9 @@ def fisheye_rays(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int) ->
     """Rays (H * W, 3) each of a fisheye photo of K (3, 3), :data:`COEFFICIENTS` and OpenCV c2w (4, 4): each pixel
     centre undistorted to the z = 1 plane (kornia's inverse; the lens sees less than 90 degrees off axis)."""
     parameters = torch.tensor([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *COEFFICIENTS], dtype=torch.float64)
-    on_plane = undistort_points_kannala_brandt(pixel_centres(height, width).reshape(-1, 2), parameters)
+    on_plane = undistort_points_kannala_brandt(image_pixels(height, width).double(), parameters)
     # the inverse closes: each ray lands back on its pixel
-    torch.testing.assert_close(distort_points_kannala_brandt(on_plane, parameters), pixel_centres(height, width).reshape(-1, 2), atol=1e-6, rtol=0)
+    torch.testing.assert_close(distort_points_kannala_brandt(on_plane, parameters), image_pixels(height, width).double(), atol=1e-6, rtol=0)
     directions = torch.nn.functional.normalize(torch.cat([on_plane, torch.ones_like(on_plane[:, :1])], dim=-1), dim=-1)
     return c2w[:3, 3].expand_as(directions), directions @ c2w[:3, :3].T
 
@@ -103,7 +103,7 @@ def test_a_lens_that_does_not_squeeze_gets_a_longer_focal_so_every_pixel_lies_in
     pincushion = FisheyeLens((0.6, 0.1, 0.0, 0.0))  # theta_d > tan(theta): the view's corners beyond the photo's
     K, placed = pincushion.pinhole(PHOTO_K, HEIGHT, WIDTH)
     assert float(K[0, 0]) > 1.1 * FOCAL and float(K[1, 1]) == float(K[0, 0]) and torch.equal(K[:2, 2], PHOTO_K[:2, 2])
-    on_plane = (pixel_centres(HEIGHT, WIDTH) - K[:2, 2]) / K.diagonal()[:2]
+    on_plane = (image_pixels(HEIGHT, WIDTH).double() - K[:2, 2]) / K.diagonal()[:2]
     landed = distort_points_kannala_brandt(on_plane, torch.tensor([*placed.photo, *placed.coefficients], dtype=torch.float64))
     assert float(landed[..., 0].min()) >= -1e-6 and float(landed[..., 0].max()) <= WIDTH + 1e-6
     assert float(landed[..., 1].min()) >= -1e-6 and float(landed[..., 1].max()) <= HEIGHT + 1e-6
@@ -124,7 +124,8 @@ def test_per_frame_lenses_and_bad_lenses_name_the_file_and_key(fisheye_capture, 
     raw = load_image(root / "images" / "000.png")
     assert torch.equal(as_float_rgb(views.images[0]), raw)  # a frame without camera_model or k's: OPENCV, no distortion
     for change, message in [
-        ({"camera_model": "EQUIRECTANGULAR"}, r"transforms.json: frame 1 \(.*001.png\): 'camera_model' is 'EQUIRECTANGULAR': this loader reads .*OPENCV_FISHEYE"),
+        ({"camera_model": "EQUIRECTANGULAR"},
+         r"transforms.json: frame 1 \(.*001.png\): 'camera_model' is 'EQUIRECTANGULAR': this loader reads .*OPENCV_FISHEYE"),
         ({"k3": None}, r"transforms.json: frame 1 .*'camera_model' OPENCV_FISHEYE needs k1, k2, k3, k4: 'k3' missing"),
         ({"k2": math.nan}, r"transforms.json: frame 1 .*'k2' is not finite"),
         ({"k4": "big"}, r"transforms.json: frame 1 .*'k4' must be a number, got 'big'"),

@@ -30,18 +30,14 @@ import kornia
 import torch
 from kornia.geometry.camera import distort_points_kannala_brandt, undistort_points_kannala_brandt
 
+from nerf_lightning.geometry.rays import image_pixels
+
 # camera_model: the models read with OpenCV's coefficients (COLMAP's simpler models are special cases of OPENCV)
 OPENCV_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 FISHEYE_MODELS = ("OPENCV_FISHEYE",)
 CAMERA_MODELS = OPENCV_MODELS + FISHEYE_MODELS
 OPENCV_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order
 FISHEYE_KEYS = ("k1", "k2", "k3", "k4")
-
-
-def pixel_centres(height: int, width: int) -> torch.Tensor:
-    """(H, W, 2) float64 (u, v) of each pixel's centre, (j + 0.5, i + 0.5)."""
-    rows, columns = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
-    return torch.stack([columns, rows], dim=-1) + 0.5
 
 
 @dataclass(frozen=True)
@@ -61,7 +57,8 @@ class OpenCVLens:
         """(H, W, C) photo -> (H, W, C) pinhole view of K (3, 3), by kornia (its pixel centres at integers, as this
         loader has always read OpenCV lenses)."""
         distortion = torch.tensor(self.coefficients, dtype=image.dtype)
-        return kornia.geometry.calibration.undistort_image(image.permute(2, 0, 1)[None], K[None].to(image.dtype), distortion[None])[0].permute(1, 2, 0)
+        chw = image.permute(2, 0, 1)[None]
+        return kornia.geometry.calibration.undistort_image(chw, K[None].to(image.dtype), distortion[None])[0].permute(1, 2, 0)
 
 
 @dataclass(frozen=True)
@@ -90,7 +87,7 @@ class FisheyeLens:
         undistorted (kornia's Gauss-Newton inverse). Pixels the lens sees at 90 degrees or more off axis land inside
         at any focal (theta < 90 degrees in a pinhole)."""
         parameters = self.parameters(K)
-        centres = pixel_centres(height, width)
+        centres = image_pixels(height, width).double().reshape(height, width, 2)
         border = torch.cat([centres[0], centres[-1], centres[:, 0], centres[:, -1]])  # (2 (H + W), 2)
         radius = ((border - parameters[2:4]) / parameters[:2]).norm(dim=-1)
         looks_along = undistort_points_kannala_brandt(border, parameters).norm(dim=-1)  # tan(theta_d^-1(radius))
@@ -107,7 +104,7 @@ class FisheyeLens:
             raise RuntimeError("FisheyeLens.undistort: the lens has no photo yet: undistort with the lens pinhole() returns")
         height, width = image.shape[:2]
         K = K.double()
-        on_plane = (pixel_centres(height, width) - K[:2, 2]) / K.diagonal()[:2]  # (H, W, 2) on the z = 1 plane
+        on_plane = (image_pixels(height, width).double().reshape(height, width, 2) - K[:2, 2]) / K.diagonal()[:2]  # on z = 1
         # float32 lands within a thousandth of a pixel of float64 across a 4K photo
         source = distort_points_kannala_brandt(on_plane.float(), torch.tensor([*self.photo, *self.coefficients]))
         grid = source / torch.tensor([width, height]) * 2.0 - 1.0  # align_corners=False: the photo's edges at -1 and 1

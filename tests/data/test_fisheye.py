@@ -18,7 +18,7 @@ from nerf_lightning.data.formats import load_transforms
 from nerf_lightning.data.formats.lenses import FisheyeLens
 from nerf_lightning.data.formats.procedural import camera_positions, shade, trace
 from nerf_lightning.data.image_stack import as_float_rgb
-from nerf_lightning.data.images import downscale, load_image
+from nerf_lightning.data.images import downscale, load_image, load_mask
 from nerf_lightning.geometry.cameras import look_at, opengl_to_opencv
 from nerf_lightning.geometry.rays import image_pixels, image_rays
 from nerf_lightning.io import write_json, write_png
@@ -137,6 +137,27 @@ def test_per_frame_lenses_and_bad_lenses_name_the_file_and_key(fisheye_capture, 
         path.write_text(json.dumps(broken))
         with pytest.raises(ValueError, match=message):
             load_transforms(path, holdout_every=0, normalise=False)
+
+
+def test_a_fisheye_captures_masks_are_undistorted_with_its_photos(fisheye_capture, tmp_path):
+    root, _ = fisheye_capture
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"] = meta["frames"][:3]
+    for frame in meta["frames"]:
+        photo = load_image(root / frame["file_path"])
+        frame["file_path"] = str(root / frame["file_path"])
+        frame["mask_path"] = str(tmp_path / Path(frame["file_path"]).name)
+        write_png(frame["mask_path"], (photo.amax(-1, keepdim=True) > 0).float().expand(-1, -1, 3))  # the scene, not the black
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    views = load_transforms(tmp_path, holdout_every=0, normalise=False).train
+    on_scene = as_float_rgb(views.images).amax(-1) > 0.02
+
+    def overlap(masks: torch.Tensor) -> torch.Tensor:  # (V,) intersection over union with where the views show the scene
+        return (masks & on_scene).sum(dim=(1, 2)) / (masks | on_scene).sum(dim=(1, 2))
+
+    raw = torch.stack([load_mask(frame["mask_path"]) for frame in meta["frames"]])
+    # undistorted: 0.94 to 0.95 (the masks' edges cut at half, the images' at their faintest); as written: 0.77 to 0.81
+    assert float(overlap(views.masks).min()) > 0.9 > 0.85 > float(overlap(raw).max())
 
 
 def test_a_fisheye_capture_trains(fisheye_capture, make_config):

@@ -5,6 +5,7 @@
     nerf-bench run cpu --only 'fern/*' --resume   # one scene; rows already measured on this machine are skipped
     nerf-bench report                             # docs/results.md and its plots, from docs/results/*.json
     nerf-bench rescore cpu --only 'fox/*'         # the rows' kept checkpoints scored again (new scores)
+    nerf-bench rescore cpu --lpips-weights ../shared/data/lpips   # ... with LPIPS's weights from a file or folder
     nerf-bench list                               # the suites and their rows
 
 For each row of the suite (scene x preset x minutes x seed, :mod:`nerf_lightning.bench.suite`): ``nerf-train``
@@ -32,6 +33,7 @@ from typing import Any
 
 from nerf_lightning.bench.report import read_results, write_report
 from nerf_lightning.bench.suite import Row, Suite, SuiteError, load_suite, shipped_suites
+from nerf_lightning.outputs.choices import LPIPS_WEIGHTS_VARIABLE
 
 DEFAULT_RESULTS = Path("docs/results")
 DEFAULT_REPORT = Path("docs/results.md")
@@ -44,6 +46,17 @@ DEFAULT_DATA_DIR = Path("../shared/data")
 
 class BenchmarkError(RuntimeError):
     """A command of a row failed: the message names the command and its log."""
+
+
+def name_lpips_weights(weights: Path | None) -> None:
+    """``--lpips-weights``: LPIPS's weights (a file, or a folder of them) for every ``nerf-eval`` this process runs,
+    through the variable ``nerf-eval`` reads (``NERF_LIGHTNING_LPIPS``), so that the rows' commands stay as a user
+    types them; without it, that variable as the user set it, else the torch hub cache."""
+    if weights is None:
+        return
+    if not weights.exists():
+        raise BenchmarkError(f"--lpips-weights: no such file or folder {weights}")
+    os.environ[LPIPS_WEIGHTS_VARIABLE] = str(weights.resolve())
 
 
 def command(name: str) -> list[str]:
@@ -246,7 +259,8 @@ def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
 
     checkpoint, arguments = scored_checkpoint(row)
     run_logged("nerf-eval", [*arguments, f"output_dir={output_dir}"], output_dir / "eval.log")
-    mean = json.loads((output_dir / "eval.json").read_text())["mean"]
+    scored = json.loads((output_dir / "eval.json").read_text())
+    mean = scored["mean"]
     before = row.get("psnr")
     # a score this machine cannot give (LPIPS without its weights) keeps the row's earlier one
     scores = {key: mean[key] for key in SCORES if mean.get(key) is not None}
@@ -255,7 +269,8 @@ def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
         updated["curve"] = [*row["curve"][:-1], {**row["curve"][-1], **scores}]
     same = before is not None and mean.get("psnr") is not None and abs(mean["psnr"] - before) < 1e-3
     updated["rescored"] = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                           "revision": source_revision(), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same}
+                           "revision": source_revision(), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same,
+                           "lpips": scored.get("lpips")}  # the weights LPIPS was scored with, or why it was not
     return updated
 
 
@@ -312,6 +327,9 @@ def main(argv: list[str] | None = None) -> None:
                      help=f"whose results table (between its marker lines) is regenerated too (default: {DEFAULT_README} where --results is "
                           f"{DEFAULT_RESULTS}, else none: rows kept elsewhere do not replace the README's table)")
     run.add_argument("--allow-dirty", action="store_true", help="measure a checkout with uncommitted changes (the rows say +dirty)")
+    lpips_help = (f"LPIPS's AlexNet weights, a file or a folder of them, for nerf-eval (default: ${LPIPS_WEIGHTS_VARIABLE}, "
+                  "else the torch hub cache)")
+    run.add_argument("--lpips-weights", type=Path, default=None, help=lpips_help)
     report = commands.add_parser("report", help="regenerate the results table and plots from the results JSONs")
     report.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
     report.add_argument("--report", type=Path, default=None, help="as for run")
@@ -323,6 +341,7 @@ def main(argv: list[str] | None = None) -> None:
     again.add_argument("--work", type=Path, default=DEFAULT_WORK, help="where the new scores' renders go")
     again.add_argument("--report", type=Path, default=None, help="as for run")
     again.add_argument("--readme", type=Path, default=None, help="as for run")
+    again.add_argument("--lpips-weights", type=Path, default=None, help=lpips_help)
     listing = commands.add_parser("list", help="the suites and their rows")
     listing.add_argument("suite", nargs="?")
     args = parser.parse_args(argv)
@@ -336,6 +355,7 @@ def main(argv: list[str] | None = None) -> None:
             args.readme = DEFAULT_README
 
     try:
+        name_lpips_weights(getattr(args, "lpips_weights", None))
         if args.command == "list":
             for name in [args.suite] if args.suite else sorted(shipped_suites()):
                 suite = load_suite(name)

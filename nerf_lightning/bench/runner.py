@@ -253,8 +253,9 @@ def scored_checkpoint(row: dict[str, Any]) -> tuple[Path, list[str]] | None:
     return (Path(checkpoint), arguments) if checkpoint else None
 
 
-def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
-    """Score ``row``'s checkpoint again into ``output_dir`` and return the row with the new scores and ``rescored``."""
+def rescore_row(row: dict[str, Any], output_dir: Path, written: Sequence[Path] = ()) -> dict[str, Any]:
+    """Score ``row``'s checkpoint again into ``output_dir`` and return the row with the new scores and ``rescored``
+    (its revision leaving out the runner's own outputs, ``written``: a row rescored before it does not make it dirty)."""
     from nerf_lightning.bench.machine import source_revision
 
     checkpoint, arguments = scored_checkpoint(row)
@@ -269,7 +270,7 @@ def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
         updated["curve"] = [*row["curve"][:-1], {**row["curve"][-1], **scores}]
     same = before is not None and mean.get("psnr") is not None and abs(mean["psnr"] - before) < 1e-3
     updated["rescored"] = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                           "revision": source_revision(), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same,
+                           "revision": source_revision(written), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same,
                            "lpips": scored.get("lpips")}  # the weights LPIPS was scored with, or why it was not
     return updated
 
@@ -297,7 +298,7 @@ def rescore(results_path: Path, patterns: list[str] | None, work_dir: Path, repo
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
         output_dir = work_dir / "rescored" / f"{row['id'].replace('/', '_')}_{stamp}"
         print(f"[{row['id']}, {row['machine']['name']}] scoring {found[0]} again", flush=True)
-        updated = rescore_row(row, output_dir)
+        updated = rescore_row(row, output_dir, [path for path in (results_path.parent, report, readme) if path is not None])
         results["rows"] = [updated if other is row else other for other in results["rows"]]
         done.append(updated)
         write_results(results_path, results)

@@ -138,7 +138,7 @@ def test_the_readmes_table_is_regenerated_between_its_marker_lines(quick_row):
     folder, _ = quick_row
     readme = (folder / "README.md").read_text()
     assert readme.startswith("# A project\n\n") and readme.endswith("<!-- end of the results table -->\n\nMore.\n")
-    assert "by hand" not in readme and "| scene | preset | training minutes | PSNR |" in readme
+    assert "by hand" not in readme and "| scene | preset | training minutes | views (WxH) | PSNR |" in readme
 
 
 def test_a_checkout_with_uncommitted_changes_is_refused_unless_allowed(tmp_path, monkeypatch):

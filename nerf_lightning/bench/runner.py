@@ -5,6 +5,7 @@
     nerf-bench run cpu --only 'fern/*' --resume   # one scene; rows already measured on this machine are skipped
     nerf-bench report                             # docs/results.md and its plots, from docs/results/*.json
     nerf-bench rescore cpu --only 'fox/*'         # the rows' kept checkpoints scored again (new scores)
+    nerf-bench rescore cpu --lpips-weights ../shared/data/lpips   # ... with LPIPS's weights from a file or folder
     nerf-bench list                               # the suites and their rows
 
 For each row of the suite (scene x preset x minutes x seed, :mod:`nerf_lightning.bench.suite`): ``nerf-train``
@@ -32,6 +33,7 @@ from typing import Any
 
 from nerf_lightning.bench.report import read_results, write_report
 from nerf_lightning.bench.suite import Row, Suite, SuiteError, load_suite, shipped_suites
+from nerf_lightning.outputs.choices import LPIPS_WEIGHTS_VARIABLE
 
 DEFAULT_RESULTS = Path("docs/results")
 DEFAULT_REPORT = Path("docs/results.md")
@@ -44,6 +46,17 @@ DEFAULT_DATA_DIR = Path("../shared/data")
 
 class BenchmarkError(RuntimeError):
     """A command of a row failed: the message names the command and its log."""
+
+
+def name_lpips_weights(weights: Path | None) -> None:
+    """``--lpips-weights``: LPIPS's weights (a file, or a folder of them) for every ``nerf-eval`` this process runs,
+    through the variable ``nerf-eval`` reads (``NERF_LIGHTNING_LPIPS``), so that the rows' commands stay as a user
+    types them; without it, that variable as the user set it, else the torch hub cache."""
+    if weights is None:
+        return
+    if not weights.exists():
+        raise BenchmarkError(f"--lpips-weights: no such file or folder {weights}")
+    os.environ[LPIPS_WEIGHTS_VARIABLE] = str(weights.resolve())
 
 
 def command(name: str) -> list[str]:
@@ -240,13 +253,15 @@ def scored_checkpoint(row: dict[str, Any]) -> tuple[Path, list[str]] | None:
     return (Path(checkpoint), arguments) if checkpoint else None
 
 
-def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
-    """Score ``row``'s checkpoint again into ``output_dir`` and return the row with the new scores and ``rescored``."""
+def rescore_row(row: dict[str, Any], output_dir: Path, written: Sequence[Path] = ()) -> dict[str, Any]:
+    """Score ``row``'s checkpoint again into ``output_dir`` and return the row with the new scores and ``rescored``
+    (its revision leaving out the runner's own outputs, ``written``: a row rescored before it does not make it dirty)."""
     from nerf_lightning.bench.machine import source_revision
 
     checkpoint, arguments = scored_checkpoint(row)
     run_logged("nerf-eval", [*arguments, f"output_dir={output_dir}"], output_dir / "eval.log")
-    mean = json.loads((output_dir / "eval.json").read_text())["mean"]
+    scored = json.loads((output_dir / "eval.json").read_text())
+    mean = scored["mean"]
     before = row.get("psnr")
     # a score this machine cannot give (LPIPS without its weights) keeps the row's earlier one
     scores = {key: mean[key] for key in SCORES if mean.get(key) is not None}
@@ -255,7 +270,8 @@ def rescore_row(row: dict[str, Any], output_dir: Path) -> dict[str, Any]:
         updated["curve"] = [*row["curve"][:-1], {**row["curve"][-1], **scores}]
     same = before is not None and mean.get("psnr") is not None and abs(mean["psnr"] - before) < 1e-3
     updated["rescored"] = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                           "revision": source_revision(), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same}
+                           "revision": source_revision(written), "checkpoint": str(checkpoint), "psnr_before": before, "psnr_as_before": same,
+                           "lpips": scored.get("lpips")}  # the weights LPIPS was scored with, or why it was not
     return updated
 
 
@@ -282,7 +298,7 @@ def rescore(results_path: Path, patterns: list[str] | None, work_dir: Path, repo
         stamp = datetime.datetime.now().strftime("%Y%m%d-%H%M%S")
         output_dir = work_dir / "rescored" / f"{row['id'].replace('/', '_')}_{stamp}"
         print(f"[{row['id']}, {row['machine']['name']}] scoring {found[0]} again", flush=True)
-        updated = rescore_row(row, output_dir)
+        updated = rescore_row(row, output_dir, [path for path in (results_path.parent, report, readme) if path is not None])
         results["rows"] = [updated if other is row else other for other in results["rows"]]
         done.append(updated)
         write_results(results_path, results)
@@ -312,6 +328,9 @@ def main(argv: list[str] | None = None) -> None:
                      help=f"whose results table (between its marker lines) is regenerated too (default: {DEFAULT_README} where --results is "
                           f"{DEFAULT_RESULTS}, else none: rows kept elsewhere do not replace the README's table)")
     run.add_argument("--allow-dirty", action="store_true", help="measure a checkout with uncommitted changes (the rows say +dirty)")
+    lpips_help = (f"LPIPS's AlexNet weights, a file or a folder of them, for nerf-eval (default: ${LPIPS_WEIGHTS_VARIABLE}, "
+                  "else the torch hub cache)")
+    run.add_argument("--lpips-weights", type=Path, default=None, help=lpips_help)
     report = commands.add_parser("report", help="regenerate the results table and plots from the results JSONs")
     report.add_argument("--results", type=Path, default=DEFAULT_RESULTS)
     report.add_argument("--report", type=Path, default=None, help="as for run")
@@ -323,6 +342,7 @@ def main(argv: list[str] | None = None) -> None:
     again.add_argument("--work", type=Path, default=DEFAULT_WORK, help="where the new scores' renders go")
     again.add_argument("--report", type=Path, default=None, help="as for run")
     again.add_argument("--readme", type=Path, default=None, help="as for run")
+    again.add_argument("--lpips-weights", type=Path, default=None, help=lpips_help)
     listing = commands.add_parser("list", help="the suites and their rows")
     listing.add_argument("suite", nargs="?")
     args = parser.parse_args(argv)
@@ -336,6 +356,7 @@ def main(argv: list[str] | None = None) -> None:
             args.readme = DEFAULT_README
 
     try:
+        name_lpips_weights(getattr(args, "lpips_weights", None))
         if args.command == "list":
             for name in [args.suite] if args.suite else sorted(shipped_suites()):
                 suite = load_suite(name)

@@ -9,3 +9,6 @@ EXPORT_FORMATS = ("ply", "obj", "glb")
 MESH_FRAMES = ("capture", "scene")
 # eval.lpips=: where LPIPS's weights come from (nerf_lightning.outputs.lpips.load_lpips)
 LPIPS_MODES = ("auto", "download", "off")
+# the environment variable naming LPIPS's weights (a file, or a folder of them) once for every nerf-eval and
+# nerf-bench, where eval.lpips_weights does not name them
+LPIPS_WEIGHTS_VARIABLE = "NERF_LIGHTNING_LPIPS"

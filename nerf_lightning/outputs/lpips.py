@@ -9,28 +9,31 @@ heads", 1x1 convolutions trained on human judgements), averaged over the pixels 
 The backbone is written here (five convolutions) rather than taken from torchvision: torchvision would add a
 dependency pinned to each torch release for one ``nn.Sequential``; its weights file loads into it as it is.
 
-Where the weights come from (:func:`load_lpips`):
+Where the weights come from (:func:`load_lpips`), the first that has them:
 
-- the backbone: torchvision's ``alexnet-owt-7be5be79.pth`` in the torch hub cache (``$TORCH_HOME/hub/checkpoints``,
-  where ``torchvision.models.alexnet(weights=...)`` leaves it), a file the user names, or a download of it
-  (``mode="download"``, the machine on the internet);
+- the backbone: a file or folder the user names, with ``eval.lpips_weights`` or once for every command with the
+  environment variable ``NERF_LIGHTNING_LPIPS`` (``nerf-bench --lpips-weights`` sets it for the ``nerf-eval`` it runs);
+  else torchvision's ``alexnet-owt-7be5be79.pth`` in the torch hub cache (``torch.hub.get_dir()/checkpoints``,
+  where ``torchvision.models.alexnet(weights=...)`` leaves it), or a download of it (``mode="download"``, the
+  machine on the internet);
 - the linear heads: ``alex.pth`` of LPIPS 0.1, from the file the user names, else from the copy torchmetrics ships
   (Lightning installs torchmetrics), else from the ``lpips`` package's.
 
 A file the user names holds torchvision's keys (``features.<i>.weight`` and ``.bias``), LPIPS's
-(``lin<k>.model.1.weight``), or both.
+(``lin<k>.model.1.weight``), or both; a folder, its ``*.pth`` files, read in name order.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 from pathlib import Path
 
 import torch
 from torch import nn
 
-from nerf_lightning.outputs.choices import LPIPS_MODES
+from nerf_lightning.outputs.choices import LPIPS_MODES, LPIPS_WEIGHTS_VARIABLE
 
 log = logging.getLogger(__name__)
 
@@ -128,23 +131,36 @@ def shipped_heads() -> Path | None:
     return None
 
 
+def named_weights(weights: str | Path, key: str) -> tuple[dict[str, torch.Tensor], list[str]]:
+    """The weights a user names under ``key`` (``eval.lpips_weights`` or the environment variable): a file, or a
+    folder whose ``*.pth`` files are read in name order -> (their tensors, the files read). A missing path or a folder
+    without ``*.pth`` raises one FileNotFoundError naming ``key``."""
+    path = Path(weights).expanduser()
+    files = sorted(path.glob("*.pth")) if path.is_dir() else [path] if path.is_file() else []
+    if not files:
+        said = "no *.pth file in the folder" if path.is_dir() else "no such file or folder"
+        raise FileNotFoundError(f"{key}: {said} {path}")
+    state: dict[str, torch.Tensor] = {}
+    for file in files:
+        state.update(_read(file))
+    return state, [str(file) for file in files]
+
+
 def load_lpips(mode: str = "auto", weights: str | Path | None = None) -> tuple[LPIPS | None, str]:
     """LPIPS with the weights found as the module's docstring says -> (the network, where its weights came from), or
     (None, one line on why it was skipped and how to get it). ``mode``: auto (the named file and the caches), download
-    (also fetch the backbone into the hub cache) or off. A named file that is missing or of the wrong shapes raises
-    one ValueError naming it."""
+    (also fetch the backbone into the hub cache) or off. ``weights``: a file or folder (None: the environment variable
+    ``NERF_LIGHTNING_LPIPS``'s, where set). A named file that is missing or of the wrong shapes raises one error
+    naming it."""
     if mode not in LPIPS_MODES:
         raise ValueError(f"eval.lpips must be {', '.join(LPIPS_MODES[:-1])} or {LPIPS_MODES[-1]}, got '{mode}'")
     if mode == "off":
         return None, "LPIPS off (eval.lpips=off)"
     state: dict[str, torch.Tensor] = {}
-    sources = []
-    if weights:
-        path = Path(weights)
-        if not path.is_file():
-            raise FileNotFoundError(f"eval.lpips_weights: no such file {path}")
-        state.update(_read(path))
-        sources.append(str(path))
+    sources: list[str] = []
+    named = (weights, "eval.lpips_weights") if weights else (os.environ.get(LPIPS_WEIGHTS_VARIABLE), f"${LPIPS_WEIGHTS_VARIABLE}")
+    if named[0]:
+        state, sources = named_weights(*named)
     if "features.0.weight" not in state:
         backbone = hub_backbone()
         if not backbone.is_file() and mode == "download":
@@ -155,8 +171,8 @@ def load_lpips(mode: str = "auto", weights: str | Path | None = None) -> tuple[L
                 return None, (f"LPIPS skipped: downloading {ALEXNET_URL} failed ({type(error).__name__}: {error}); put the "
                               f"file at {backbone} or name it with eval.lpips_weights=<file>")
         if not backbone.is_file():
-            return None, (f"LPIPS skipped: no AlexNet weights at {backbone}; set eval.lpips_weights=<file> or "
-                          "eval.lpips=download (fetches them from download.pytorch.org)")
+            return None, (f"LPIPS skipped: no AlexNet weights at {backbone}; set eval.lpips_weights=<file or folder>, "
+                          f"${LPIPS_WEIGHTS_VARIABLE}, or eval.lpips=download (fetches them from download.pytorch.org)")
         state.update({key: value for key, value in _read(backbone).items() if key.startswith("features.")})
         sources.append(str(backbone))
     if "lin0.model.1.weight" not in state:

@@ -66,3 +66,24 @@ def test_the_posing_table_says_how_well_the_masks_agree_where_a_row_measured_it(
     assert darker.startswith("| moldGoldCape images_4/, photos darkened x 0.25 | yes | 20 |"), darker
     sequential = posing_table([{**row, "process_capture": {"matcher": "sequential"}}])[2]
     assert sequential.startswith("| moldGoldCape images_4/, matcher=sequential | yes | 20 |"), sequential
+    assert lines[0].endswith("| revision |") and lines[3].endswith("| – |")  # no revision recorded
+    revised = posing_table([{**row, "revision": "308ca46+dirty"}])[2]
+    assert revised.endswith("| 2026-11-27 | `308ca46+dirty` |"), revised
+
+
+def test_the_results_tables_say_how_many_views_each_row_was_scored_on_and_at_what_size():
+    """docs/results.md's and the README's tables: a views column, N @ width x height from the row's JSON, – for a row
+    that did not record it."""
+    from nerf_lightning.bench.report import readme_table, scene_table
+
+    row = {"suite": "cpu", "scene": "lego", "preset": "splat_blender", "minutes": 10, "training_minutes": 4.65, "steps": 900,
+           "seconds_per_step": 0.3, "psnr": 34.11, "ssim": 0.986, "lpips": 0.0087, "seconds_per_frame": 0.02, "views": 5,
+           "frame_size": [400, 300], "machine": {"name": "2 cores"}, "date": "2026-12-07T14:00:00", "revision": "5d62a8f"}
+    unknown = {key: value for key, value in row.items() if key not in ("views", "frame_size")}
+    for table in (scene_table([row, unknown]), readme_table([row, {**unknown, "preset": "fast_blender"}])):
+        header = [cell.strip() for cell in table[0].strip("|").split("|")]
+        column = header.index("views (WxH)")
+        cells = [[cell.strip() for cell in line.strip("|").split("|")] for line in table[2:]]
+        assert sorted(line[column] for line in cells) == ["5 @ 300x400", "–"], table
+        assert all(len(line) == len(header) for line in cells)
+        assert any(line[header.index("LPIPS")] == "0.009" for line in cells)

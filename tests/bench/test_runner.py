@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -137,7 +138,7 @@ def test_the_readmes_table_is_regenerated_between_its_marker_lines(quick_row):
     folder, _ = quick_row
     readme = (folder / "README.md").read_text()
     assert readme.startswith("# A project\n\n") and readme.endswith("<!-- end of the results table -->\n\nMore.\n")
-    assert "by hand" not in readme and "| scene | preset | training minutes | PSNR |" in readme
+    assert "by hand" not in readme and "| scene | preset | training minutes | views (WxH) | PSNR |" in readme
 
 
 def test_a_checkout_with_uncommitted_changes_is_refused_unless_allowed(tmp_path, monkeypatch):
@@ -184,3 +185,22 @@ def test_what_the_runner_writes_does_not_make_the_checkout_dirty(tmp_path):
     written = [tmp_path / "docs" / "results", tmp_path / "README.md", tmp_path / "docs" / "results.md"]
     assert changed_files(status, tmp_path, written) == [(tmp_path / "nerf_lightning" / "models" / "splat.py").resolve()]
     assert len(changed_files(status, tmp_path)) == 4
+
+
+def test_lpips_weights_named_once_reach_every_nerf_eval_the_runner_starts(tmp_path, monkeypatch):
+    """--lpips-weights sets the variable nerf-eval reads (its children inherit it; the rows' commands stay as typed);
+    a path that is not there is one line naming the option, exit 2."""
+    from nerf_lightning.bench.runner import BenchmarkError, name_lpips_weights
+    from nerf_lightning.outputs.choices import LPIPS_WEIGHTS_VARIABLE
+
+    monkeypatch.delenv(LPIPS_WEIGHTS_VARIABLE, raising=False)
+    name_lpips_weights(None)
+    assert LPIPS_WEIGHTS_VARIABLE not in os.environ
+    (tmp_path / "lpips").mkdir()
+    monkeypatch.chdir(tmp_path)
+    name_lpips_weights(Path("lpips"))
+    assert os.environ[LPIPS_WEIGHTS_VARIABLE] == str(tmp_path / "lpips")
+    with pytest.raises(BenchmarkError, match="--lpips-weights: no such file or folder nowhere"):
+        name_lpips_weights(Path("nowhere"))
+    result = bench("rescore", "cpu", "--results", "results", "--lpips-weights", "nowhere", cwd=tmp_path)
+    assert result.returncode == 2 and result.stderr.strip() == "nerf-bench: --lpips-weights: no such file or folder nowhere"

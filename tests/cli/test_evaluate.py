@@ -36,6 +36,7 @@ def test_eval_adds_lpips_with_weights_and_says_once_why_it_is_absent_without(tmp
                       *QUIET, run_dir=run))
     ckpt = run / "checkpoints" / "last.ckpt"
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "empty_torch_home"))  # no AlexNet weights in its hub cache
+    monkeypatch.delenv("NERF_LIGHTNING_LPIPS", raising=False)  # nor named for every command
     with caplog.at_level(logging.WARNING):
         said = evaluate_checkpoint(ckpt, tmp_path / "without", max_views=2)
     assert "lpips" not in said["mean"] and said["lpips"]["skipped"].startswith("LPIPS skipped: no AlexNet weights")

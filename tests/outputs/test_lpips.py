@@ -1,12 +1,21 @@
 """LPIPS with weights the tests write (no network): its code path against torchmetrics' own LPIPS, the properties of a
-distance, blur farther than noise, where the weights come from, and a weights file of the wrong shape."""
+distance, blur farther than noise, where the weights come from, and a weights file of the wrong shape; with the real
+weights (../shared/data/lpips), the distances its authors' code gives on their example images."""
 
+import os
+from pathlib import Path
+
+import imageio.v3 as iio
 import pytest
 import torch
 from torch import nn
 
 from nerf_lightning.data.image_stack import as_float_rgb
+from nerf_lightning.outputs.choices import LPIPS_WEIGHTS_VARIABLE
 from nerf_lightning.outputs.lpips import ALEXNET_FILE, CONVOLUTIONS, LPIPS, load_lpips, shipped_heads
+from tests.conftest import SHARED_DATA
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "lpips"
 
 
 def alexnet_features(seed: int = 0) -> nn.Sequential:
@@ -109,6 +118,7 @@ def test_a_distance_zero_for_the_same_image_symmetric_and_larger_for_blur_than_f
 
 def test_the_backbone_from_the_hub_cache_and_the_heads_torchmetrics_ships(tmp_path, monkeypatch, image):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.delenv(LPIPS_WEIGHTS_VARIABLE, raising=False)
     network, said = load_lpips("auto")
     assert network is None and said.startswith("LPIPS skipped: no AlexNet weights at") and "eval.lpips_weights" in said
     assert load_lpips("off") == (None, "LPIPS off (eval.lpips=off)")
@@ -140,6 +150,7 @@ def test_download_fetches_the_backbone_into_the_hub_cache_and_a_failed_download_
     from nerf_lightning.outputs import lpips as module
 
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.delenv(LPIPS_WEIGHTS_VARIABLE, raising=False)
     asked = []
 
     def fake_download(url, progress=True, file_name=None):
@@ -163,3 +174,45 @@ def test_download_fetches_the_backbone_into_the_hub_cache_and_a_failed_download_
     network, said = load_lpips("download")
     assert network is None and said.startswith(f"LPIPS skipped: downloading {module.ALEXNET_URL} failed (OSError: Network is unreachable)")
     assert "\n" not in said
+
+
+def reference_weights() -> Path | None:
+    """The verified AlexNet backbone (``../shared/data/lpips``, its README says whence), or the file or folder
+    ``$NERF_LIGHTNING_LPIPS`` names; None where neither is here."""
+    named = os.environ.get(LPIPS_WEIGHTS_VARIABLE)
+    for candidate in ([Path(named)] if named else []) + [SHARED_DATA / "lpips"]:
+        if candidate.exists():
+            return candidate
+    return None
+
+
+@pytest.mark.skipif(reference_weights() is None, reason="no LPIPS AlexNet weights in ../shared/data/lpips (or $NERF_LIGHTNING_LPIPS)")
+def test_the_authors_example_images_at_the_distances_their_code_gives():
+    """PerceptualSimilarity's ``test_network.py`` (LPIPS v0.1, AlexNet) prints ``Distances: (0.722, 0.138)`` from
+    ``ex_ref.png`` to ``ex_p0.png`` and ``ex_p1.png`` (tests/fixtures/lpips/README.md): the project's LPIPS, with
+    torchvision's AlexNet and the heads torchmetrics ships, gives them to the printed three decimals."""
+    network, source = load_lpips("auto", reference_weights())
+    assert network is not None, source
+    ref, p0, p1 = (torch.from_numpy(iio.imread(FIXTURES / f"{name}.png")).float() / 255.0 for name in ("ex_ref", "ex_p0", "ex_p1"))
+    assert ref.shape == (64, 64, 3)
+    assert float(network(ref, p0)) == pytest.approx(0.722, abs=5e-4)
+    assert float(network(ref, p1)) == pytest.approx(0.138, abs=5e-4)
+
+
+def test_a_folder_named_once_in_the_environment_gives_the_weights(tmp_path, monkeypatch, image):
+    """``$NERF_LIGHTNING_LPIPS`` names a folder (its ``*.pth`` read in name order) where eval.lpips_weights names
+    nothing; eval.lpips_weights wins where both are set; a folder without weights is one error naming the variable."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # an empty hub cache: the weights come from the folder
+    folder = tmp_path / "lpips"
+    folder.mkdir()
+    monkeypatch.setenv(LPIPS_WEIGHTS_VARIABLE, str(folder))
+    with pytest.raises(FileNotFoundError, match=rf"\${LPIPS_WEIGHTS_VARIABLE}: no \*.pth file in the folder {folder}"):
+        load_lpips("auto")
+    written_weights(folder / "alexnet.pth", heads=False)
+    network, said = load_lpips("auto")
+    assert network is not None and said == f"{folder / 'alexnet.pth'} + {shipped_heads()}"
+    named, said = load_lpips("auto", written_weights(tmp_path / "other.pth", seed=5))
+    assert said == str(tmp_path / "other.pth") and float(named(image, image.flip(0))) != float(network(image, image.flip(0)))
+    monkeypatch.setenv(LPIPS_WEIGHTS_VARIABLE, str(tmp_path / "missing"))
+    with pytest.raises(FileNotFoundError, match=rf"\${LPIPS_WEIGHTS_VARIABLE}: no such file or folder"):
+        load_lpips("auto")

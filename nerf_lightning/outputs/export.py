@@ -80,7 +80,8 @@ def _write_splats_spz(model: HasGaussians, options: Mapping[str, Any], output_di
     parameters = splats_in_frame(model, frame)
     # the header's flag: drawn with Mip-Splatting's opacity compensation, a viewer should draw it so too
     antialiased = bool(getattr(getattr(model, "rasterizer", None), "antialiased", False))
-    path = write_splat_spz(output_dir / "splats.spz", **parameters, antialiased=antialiased)
+    path = write_splat_spz(output_dir / "splats.spz", **parameters, antialiased=antialiased, sh1_bits=int(options.get("sh1_bits", 5)),
+                           sh_rest_bits=int(options.get("sh_rest_bits", 4)))
     log.info("wrote %s: %d Gaussians, %.1f MB (SPZ version 3: SuperSplat, Spark and Niantic's viewers open it), in the %s's "
              "coordinates turned to SPZ's RUB", path, len(parameters["means"]), path.stat().st_size / 1e6, frame)
     return path

@@ -12,8 +12,10 @@ then the Gaussians attribute by attribute, each byte rounded and clamped to 0..2
     rotations  N x 4 bytes      "smallest three": the unit quaternion (x y z w) with its largest component made
                                 positive; that component's index in the top 2 bits, then each other component, in
                                 index order, as a sign bit and 9 bits of |value| / sqrt(1/2)
-    sh         N x (K - 1) x 3  coefficient by coefficient, the channel inner: round(128 sh) + 128, rounded to
-                                buckets of 8 (degree 1) and 16 (degrees 2 and 3), as Niantic's writer packs them
+    sh         N x (K - 1) x 3  coefficient by coefficient, the channel inner: round(128 sh) + 128, its low bits
+                                rounded away to keep ``sh1_bits`` (band 1) and ``sh_rest_bits`` (bands 2 and 3): 5 and
+                                4 by default, as Niantic's writer packs them (zeros compress; a reader needs no word
+                                of it)
 
 Version 3, not 4 (each attribute its own zstd stream): 3 is what SuperSplat's, PlayCanvas's and Spark's readers and
 gsply read, and Niantic's loader reads it still. The format stores RUB coordinates (x right, y up, z back: three.js's);
@@ -42,7 +44,7 @@ COLOUR_SCALE = 0.15
 # 12 bits after the point (1/4096, a quarter of a millimetre in metres), Niantic's choice; fewer where the positions
 # reach beyond the 24 bits' +-2048 (a reader takes the count from the header)
 FRACTIONAL_BITS = 12
-SH_BITS = {1: 5, 2: 4, 3: 4}  # bits kept a coefficient, by band (Niantic's defaults, sh1Bits and shRestBits)
+SH1_BITS, SH_REST_BITS = 5, 4  # bits kept of an SH coefficient of band 1 and of bands 2 and 3: Niantic's defaults
 # the PLY's RDF to SPZ's RUB: 180 degrees about x, a rotation (so the SH bands turn with it, no mirror)
 RUB_FROM_RDF = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
@@ -83,25 +85,30 @@ def pack_rotations(quats_xyzw: np.ndarray) -> np.ndarray:
     return packed.astype("<u4").view(np.uint8).reshape(n, 4)
 
 
-def pack_sh(shN: np.ndarray) -> np.ndarray:
-    """(N, K - 1, 3) higher SH coefficients -> (N, 3 (K - 1)) bytes, each band in its buckets."""
+def pack_sh(shN: np.ndarray, sh1_bits: int = SH1_BITS, sh_rest_bits: int = SH_REST_BITS) -> np.ndarray:
+    """(N, K - 1, 3) higher SH coefficients -> (N, 3 (K - 1)) bytes, ``sh1_bits`` kept of band 1's, ``sh_rest_bits``
+    of the others' (1 to 8)."""
     n, rest = shN.shape[:2]
     quantised = np.floor(np.abs(shN) * 128 + 0.5) * np.sign(shN) + 128
     band = np.floor(np.sqrt(np.arange(rest) + 1)).astype(int)  # coefficient k (after the DC) is in band floor(sqrt(k + 1))
-    bucket = np.array([1 << (8 - SH_BITS[b]) for b in band], dtype=np.float64)[None, :, None]
+    bucket = np.array([1 << (8 - (sh1_bits if b == 1 else sh_rest_bits)) for b in band], dtype=np.float64)[None, :, None]
     quantised = np.floor((quantised + bucket // 2) / bucket) * bucket
     return np.clip(quantised, 0, 255).astype(np.uint8).reshape(n, 3 * rest)
 
 
 def write_splat_spz(path: str | Path, means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, opacity_logits: torch.Tensor,
-                    sh0: torch.Tensor, shN: torch.Tensor, antialiased: bool = False) -> Path:
+                    sh0: torch.Tensor, shN: torch.Tensor, antialiased: bool = False, sh1_bits: int = SH1_BITS,
+                    sh_rest_bits: int = SH_REST_BITS) -> Path:
     """Write N Gaussians, given in the PLY's RDF coordinates, as SPZ version 3 (RUB): means (N, 3), quats (N, 4)
     w x y z, log_scales (N, 3), opacity_logits (N,), sh0 (N, 1, 3), shN (N, K - 1, 3) with K - 1 in 0, 3, 8, 15;
-    ``antialiased`` sets the header's flag (viewers then compensate the low-pass filter's opacity, as Mip-Splatting).
+    ``antialiased`` sets the header's flag (viewers then compensate the low-pass filter's opacity, as Mip-Splatting);
+    ``sh1_bits`` and ``sh_rest_bits`` (1 to 8) the bits kept of the higher SH coefficients.
     Gaussians with a non-finite value are left out, as in the PLY."""
     rest = shN.shape[1]
     if rest not in (0, 3, 8, 15):
         raise ValueError(f"SPZ holds SH degrees 0 to 3 ((degree + 1)^2 - 1 = 0, 3, 8 or 15 higher coefficients), got {rest}")
+    if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
+        raise ValueError(f"sh1_bits and sh_rest_bits must be from 1 to 8, got {sh1_bits} and {sh_rest_bits}")
     columns = [means, quats, log_scales, opacity_logits[:, None], sh0.reshape(-1, 3), shN.reshape(len(shN), -1)]
     finite = torch.cat([column.detach().float().cpu() for column in columns], dim=1).isfinite().all(dim=1)
     parameters = {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": opacity_logits, "sh0": sh0, "shN": shN}
@@ -113,6 +120,6 @@ def write_splat_spz(path: str | Path, means: torch.Tensor, quats: torch.Tensor, 
     header = struct.pack("<IIIBBBB", MAGIC, VERSION, n, round(math.sqrt(rest + 1)) - 1, bits, FLAG_ANTIALIASED if antialiased else 0, 0)
     sections = [pack_positions(g["means"], bits), to_bytes(255 / (1 + np.exp(-np.clip(g["opacity_logits"], -60, 60)))),
                 to_bytes(g["sh0"].reshape(n, 3) * (COLOUR_SCALE * 255) + 127.5), to_bytes((g["log_scales"] + 10) * 16),
-                pack_rotations(quats_xyzw), pack_sh(g["shN"])]
+                pack_rotations(quats_xyzw), pack_sh(g["shN"], sh1_bits, sh_rest_bits)]
     payload = header + b"".join(np.ascontiguousarray(section).tobytes() for section in sections)
     return write_atomic(path, gzip.compress(payload, compresslevel=6, mtime=0))  # mtime 0: the same Gaussians, the same bytes

@@ -60,8 +60,9 @@ def read_with_gsply(path) -> dict[str, torch.Tensor]:
             "sh0": torch.from_numpy(np.asarray(data.sh0)).reshape(n, 1, 3), "shN": shN}
 
 
-def assert_within_quantisation(read: dict[str, torch.Tensor], rdf: dict[str, torch.Tensor]) -> None:
-    """``read`` (RUB, from the SPZ) holds the Gaussians ``rdf`` (the PLY's coordinates) within the format's steps."""
+def assert_within_quantisation(read: dict[str, torch.Tensor], rdf: dict[str, torch.Tensor], sh_steps: tuple[float, float] = (SH_BAND_1, SH_BANDS_2_3)) -> None:
+    """``read`` (RUB, from the SPZ) holds the Gaussians ``rdf`` (the PLY's coordinates) within the format's steps
+    (``sh_steps``: the half steps of band 1's SH coefficients and of the others')."""
     torch.testing.assert_close(read["means"].double(), (rdf["means"] * FLIP).double(), rtol=0, atol=POSITION + 1e-6)
     torch.testing.assert_close(torch.sigmoid(read["opacity_logits"]).double(), torch.sigmoid(rdf["opacity_logits"]).double(),
                                rtol=0, atol=ALPHA + 1e-4)  # + the reader's float32 logit
@@ -72,7 +73,7 @@ def assert_within_quantisation(read: dict[str, torch.Tensor], rdf: dict[str, tor
     torch.testing.assert_close(axes.abs(), torch.eye(3, dtype=torch.float64).expand_as(axes), rtol=0, atol=5e-3)
     rest = rdf["shN"].shape[1]
     expected = rdf["shN"] * SH_FLIP[:rest, None]
-    step = torch.tensor([SH_BAND_1] * 3 + [SH_BANDS_2_3] * 12)[:rest, None]
+    step = torch.tensor([sh_steps[0]] * 3 + [sh_steps[1]] * 12)[:rest, None]
     assert ((read["shN"] - expected).abs() <= step + 1e-6).all()
 
 
@@ -83,6 +84,15 @@ def test_gsply_reads_back_every_attribute_within_the_formats_quantisation(tmp_pa
     read = read_with_gsply(path)
     assert len(read["means"]) == 200 and read["shN"].shape[1] == rest
     assert_within_quantisation(read, written)
+
+
+def test_every_bit_of_the_sh_can_be_kept(tmp_path):
+    """sh1_bits=8 and sh_rest_bits=8: the SH within half of 1/128, the 8 bits' own step."""
+    written = splats()
+    read = read_with_gsply(write_splat_spz(tmp_path / "all.spz", **written, sh1_bits=8, sh_rest_bits=8))
+    assert_within_quantisation(read, written, sh_steps=(0.5 / 128, 0.5 / 128))
+    with pytest.raises(ValueError, match="sh1_bits and sh_rest_bits must be from 1 to 8, got 9 and 4"):
+        write_splat_spz(tmp_path / "nine.spz", **written, sh1_bits=9)
 
 
 def test_the_header_and_sections_are_the_specs(tmp_path):
@@ -129,7 +139,7 @@ def test_nerf_export_writes_the_plys_gaussians_as_spz_smaller(tmp_path):
     model = Splats(splats(n=2000, sh=0.3), world_from_capture)  # turned, a band's coefficients stay within [-1, 1)
     assert formats_of(model) == ["ply", "spz"]
     ply = export_model(model, "ply", tmp_path, {"frame": "capture"})
-    spz = export_model(model, "spz", tmp_path, {"frame": "capture"})
+    spz = export_model(model, "spz", tmp_path, {"frame": "capture", "sh1_bits": 5, "sh_rest_bits": 4})
     assert spz.name == "splats.spz" and spz.stat().st_size < ply.stat().st_size / 4
     assert gzip.decompress(spz.read_bytes())[14] == 1  # drawn antialiased, flagged so
     in_capture = read_splat_ply(ply)

@@ -82,7 +82,7 @@ def _write_splats_spz(model: HasGaussians, options: Mapping[str, Any], output_di
     antialiased = bool(getattr(getattr(model, "rasterizer", None), "antialiased", False))
     path = write_splat_spz(output_dir / "splats.spz", **parameters, antialiased=antialiased, sh1_bits=int(options.get("sh1_bits", 5)),
                            sh_rest_bits=int(options.get("sh_rest_bits", 4)))
-    log.info("wrote %s: %d Gaussians, %.1f MB (SPZ version 3: SuperSplat, Spark and Niantic's viewers open it), in the %s's "
+    log.info("wrote %s: %d Gaussians, %.1f MB (SPZ version 3: SuperSplat, Spark, Babylon.js and Niantic's loader read it), in the %s's "
              "coordinates turned to SPZ's RUB", path, len(parameters["means"]), path.stat().st_size / 1e6, frame)
     return path
 

@@ -17,8 +17,8 @@ then the Gaussians attribute by attribute, each byte rounded and clamped to 0..2
                                 4 by default, as Niantic's writer packs them (zeros compress; a reader needs no word
                                 of it)
 
-Version 3, not 4 (each attribute its own zstd stream): 3 is what SuperSplat's, PlayCanvas's and Spark's readers and
-gsply read, and Niantic's loader reads it still. The format stores RUB coordinates (x right, y up, z back: three.js's);
+Version 3, not 4 (each attribute its own zstd stream, newer): 3 is what every SPZ reader reads (PlayCanvas's
+splat-transform, Spark, gsply, Niantic's loader). The format stores RUB coordinates (x right, y up, z back: three.js's);
 the 3DGS PLY is taken to be RDF (y down, z forward: COLMAP's), so the Gaussians are turned 180 degrees about x on the
 way in (y and z negated, rotations and SH bands turned with them), as Niantic's ``PackOptions.from = RDF`` does: a
 viewer that follows each format's convention shows the SPZ as it shows the PLY.

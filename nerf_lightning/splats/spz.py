@@ -113,10 +113,14 @@ def write_splat_spz(path: str | Path, means: torch.Tensor, quats: torch.Tensor, 
     finite = torch.cat([column.detach().float().cpu() for column in columns], dim=1).isfinite().all(dim=1)
     parameters = {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": opacity_logits, "sh0": sh0, "shN": shN}
     g = {name: value.detach().cpu()[finite] for name, value in parameters.items()}
-    g = {name: value.double().numpy() for name, value in transform_gaussians(g, RUB_FROM_RDF).items()}
+    turned = transform_gaussians(g, RUB_FROM_RDF)
+    # the rotation R in the new frame as F R F (F = RUB_FROM_RDF: x, y, z's signs flipped as Niantic's writer flips them,
+    # so its bytes are the ones it writes) rather than transform_gaussians's F R: the same Gaussian, its axes' signs aside
+    turned["quats"] = torch.nn.functional.normalize(g["quats"].double(), dim=-1) * torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=torch.float64)
+    g = {name: value.double().numpy() for name, value in turned.items()}
     n = len(g["means"])
     bits = fractional_bits_for(g["means"])
-    quats_xyzw = g["quats"][:, [1, 2, 3, 0]] / np.maximum(np.linalg.norm(g["quats"], axis=1, keepdims=True), 1e-12)
+    quats_xyzw = g["quats"][:, [1, 2, 3, 0]]
     header = struct.pack("<IIIBBBB", MAGIC, VERSION, n, round(math.sqrt(rest + 1)) - 1, bits, FLAG_ANTIALIASED if antialiased else 0, 0)
     sections = [pack_positions(g["means"], bits), to_bytes(255 / (1 + np.exp(-np.clip(g["opacity_logits"], -60, 60)))),
                 to_bytes(g["sh0"].reshape(n, 3) * (COLOUR_SCALE * 255) + 127.5), to_bytes((g["log_scales"] + 10) * 16),

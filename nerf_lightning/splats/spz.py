@@ -109,7 +109,7 @@ def write_splat_spz(path: str | Path, means: torch.Tensor, quats: torch.Tensor, 
         raise ValueError(f"SPZ holds SH degrees 0 to 3 ((degree + 1)^2 - 1 = 0, 3, 8 or 15 higher coefficients), got {rest}")
     if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
         raise ValueError(f"sh1_bits and sh_rest_bits must be from 1 to 8, got {sh1_bits} and {sh_rest_bits}")
-    columns = [means, quats, log_scales, opacity_logits[:, None], sh0.reshape(-1, 3), shN.reshape(len(shN), -1)]
+    columns = [means, quats, log_scales, opacity_logits[:, None], sh0.reshape(len(sh0), 3), shN.reshape(len(shN), 3 * rest)]
     finite = torch.cat([column.detach().float().cpu() for column in columns], dim=1).isfinite().all(dim=1)
     parameters = {"means": means, "quats": quats, "log_scales": log_scales, "opacity_logits": opacity_logits, "sh0": sh0, "shN": shN}
     g = {name: value.detach().cpu()[finite] for name, value in parameters.items()}

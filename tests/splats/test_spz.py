@@ -60,7 +60,8 @@ def read_with_gsply(path) -> dict[str, torch.Tensor]:
             "sh0": torch.from_numpy(np.asarray(data.sh0)).reshape(n, 1, 3), "shN": shN}
 
 
-def assert_within_quantisation(read: dict[str, torch.Tensor], rdf: dict[str, torch.Tensor], sh_steps: tuple[float, float] = (SH_BAND_1, SH_BANDS_2_3)) -> None:
+def assert_within_quantisation(read: dict[str, torch.Tensor], rdf: dict[str, torch.Tensor],
+                               sh_steps: tuple[float, float] = (SH_BAND_1, SH_BANDS_2_3)) -> None:
     """``read`` (RUB, from the SPZ) holds the Gaussians ``rdf`` (the PLY's coordinates) within the format's steps
     (``sh_steps``: the half steps of band 1's SH coefficients and of the others')."""
     torch.testing.assert_close(read["means"].double(), (rdf["means"] * FLIP).double(), rtol=0, atol=POSITION + 1e-6)
@@ -111,11 +112,13 @@ def test_the_header_and_sections_are_the_specs(tmp_path):
     np.testing.assert_allclose(means, (far["means"] * FLIP).numpy(), rtol=0, atol=0.5 / 2**bits + 1e-3)
 
 
-def test_non_finite_gaussians_are_left_out_and_a_fourth_band_refused(tmp_path):
+def test_non_finite_gaussians_are_left_out_none_is_an_empty_file_and_a_fourth_band_refused(tmp_path):
     written = splats(n=7, rest=3)
     written["log_scales"][2, 0] = float("inf")
     raw = gzip.decompress(write_splat_spz(tmp_path / "s.spz", **written).read_bytes())
     assert struct.unpack("<I", raw[8:12])[0] == 6
+    nothing = {name: value[:0] for name, value in written.items()}  # a model with no Gaussians left: a valid empty file
+    assert gzip.decompress(write_splat_spz(tmp_path / "none.spz", **nothing).read_bytes())[8:12] == b"\0\0\0\0"
     with pytest.raises(ValueError, match="SPZ holds SH degrees 0 to 3 .* got 24"):
         write_splat_spz(tmp_path / "four.spz", **splats(n=3, rest=24))
 

@@ -74,14 +74,14 @@ def _write_splats(model: HasGaussians, options: Mapping[str, Any], output_dir: P
 def _write_splats_spz(model: HasGaussians, options: Mapping[str, Any], output_dir: Path) -> Path:
     """The same Gaussians as the splat PLY, as Niantic's SPZ (:mod:`nerf_lightning.splats.spz`: 8-bit and 24-bit
     quantised, gzipped, turned from the PLY's RDF to SPZ's RUB)."""
-    from nerf_lightning.splats.spz import write_splat_spz
+    from nerf_lightning.splats.spz import SH1_BITS, SH_REST_BITS, write_splat_spz
 
     frame = options.get("frame", "capture")
     parameters = splats_in_frame(model, frame)
     # the header's flag: drawn with Mip-Splatting's opacity compensation, a viewer should draw it so too
     antialiased = bool(getattr(getattr(model, "rasterizer", None), "antialiased", False))
-    path = write_splat_spz(output_dir / "splats.spz", **parameters, antialiased=antialiased, sh1_bits=int(options.get("sh1_bits", 5)),
-                           sh_rest_bits=int(options.get("sh_rest_bits", 4)))
+    path = write_splat_spz(output_dir / "splats.spz", **parameters, antialiased=antialiased, sh1_bits=int(options.get("sh1_bits", SH1_BITS)),
+                           sh_rest_bits=int(options.get("sh_rest_bits", SH_REST_BITS)))
     log.info("wrote %s: %d Gaussians, %.1f MB (SPZ version 3: SuperSplat, Spark, Babylon.js and Niantic's loader read it), in the %s's "
              "coordinates turned to SPZ's RUB", path, len(parameters["means"]), path.stat().st_size / 1e6, frame)
     return path

@@ -223,6 +223,8 @@ def check_export_keys(cfg: DictConfig) -> None:
     check_number(cfg, "threshold")
     check_choice(cfg, "format", EXPORT_FORMATS)
     check_keep(cfg)
+    check_integer(cfg, "sh1_bits", 1, 8)
+    check_integer(cfg, "sh_rest_bits", 1, 8)
 
 
 def check_viz_cameras_keys(cfg: DictConfig) -> None:

@@ -98,7 +98,7 @@ class ShowsOverlays(Protocol):
 
 @runtime_checkable
 class HasGaussians(Protocol):
-    """A model made of 3D Gaussians, written as a splat PLY (:mod:`nerf_lightning.splats.ply`).
+    """A model made of 3D Gaussians, written as a splat PLY or SPZ (:mod:`nerf_lightning.splats.ply`, :mod:`~nerf_lightning.splats.spz`).
 
     ``gaussian_parameters()`` -> means (N, 3) in the scene's world, quats (N, 4) w x y z, log_scales (N, 3),
     opacity_logits (N,), sh0 (N, 1, 3), shN (N, K - 1, 3) spherical-harmonic colours (3DGS's constants).

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
-# format=: what nerf-export writes (a mesh in any of them; a model of Gaussians as a splat PLY)
-EXPORT_FORMATS = ("ply", "obj", "glb")
+# the formats a mesh is written in
+MESH_FORMATS = ("ply", "obj", "glb")
+# format=: what nerf-export writes (a mesh in any of the mesh formats; a model of Gaussians as a splat PLY or SPZ)
+EXPORT_FORMATS = (*MESH_FORMATS, "spz")
 # frame=: the coordinates a mesh is written in: the capture's own (its transforms.json or poses) or the scene's
 MESH_FRAMES = ("capture", "scene")
 # eval.lpips=: where LPIPS's weights come from (nerf_lightning.outputs.lpips.load_lpips)

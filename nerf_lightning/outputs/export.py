@@ -43,24 +43,47 @@ def _mesh_writer(file_type: str) -> Callable[[Any, Mapping[str, Any], Path], Pat
     return write
 
 
-def _write_splats(model: HasGaussians, options: Mapping[str, Any], output_dir: Path) -> Path:
-    """The splat PLY, in the capture's coordinates (``frame=capture``: the loader's similarity undone, so the splats
-    line up with the capture's own cameras and sparse points) or the scene's (``frame=scene``)."""
+def splats_in_frame(model: HasGaussians, frame: str) -> dict[str, Any]:
+    """The model's Gaussians in the capture's coordinates (``frame=capture``: the loader's similarity undone, so the
+    splats line up with the capture's own cameras and sparse points) or the scene's (``frame=scene``)."""
     import torch
 
     from nerf_lightning.splats.gaussians import transform_gaussians
-    from nerf_lightning.splats.ply import write_splat_ply
 
-    frame = options.get("frame", "capture")
     if frame not in ("capture", "scene"):
         raise ValueError(f"export frame must be capture or scene, got '{frame}'")
     parameters = model.gaussian_parameters()
     world_from_capture = getattr(getattr(model, "space", None), "world_from_capture", None)
     if frame == "capture" and world_from_capture is not None:  # on the CPU (Apple GPUs have no float64): both move there
         parameters = transform_gaussians(parameters, torch.linalg.inv(world_from_capture.cpu().double()))
+    return parameters
+
+
+def _write_splats(model: HasGaussians, options: Mapping[str, Any], output_dir: Path) -> Path:
+    """The splat PLY, in the capture's or the scene's coordinates (:func:`splats_in_frame`)."""
+    from nerf_lightning.splats.ply import write_splat_ply
+
+    frame = options.get("frame", "capture")
+    parameters = splats_in_frame(model, frame)
     path = write_splat_ply(output_dir / "splats.ply", **parameters)
     log.info("wrote %s: %d Gaussians (the 3DGS layout: SuperSplat and the web splat viewers open it), in the %s's coordinates",
              path, len(parameters["means"]), frame)
+    return path
+
+
+def _write_splats_spz(model: HasGaussians, options: Mapping[str, Any], output_dir: Path) -> Path:
+    """The same Gaussians as the splat PLY, as Niantic's SPZ (:mod:`nerf_lightning.splats.spz`: 8-bit and 24-bit
+    quantised, gzipped, turned from the PLY's RDF to SPZ's RUB)."""
+    from nerf_lightning.splats.spz import SH1_BITS, SH_REST_BITS, write_splat_spz
+
+    frame = options.get("frame", "capture")
+    parameters = splats_in_frame(model, frame)
+    # the header's flag: drawn with Mip-Splatting's opacity compensation, a viewer should draw it so too
+    antialiased = bool(getattr(getattr(model, "rasterizer", None), "antialiased", False))
+    path = write_splat_spz(output_dir / "splats.spz", **parameters, antialiased=antialiased, sh1_bits=int(options.get("sh1_bits", SH1_BITS)),
+                           sh_rest_bits=int(options.get("sh_rest_bits", SH_REST_BITS)))
+    log.info("wrote %s: %d Gaussians, %.1f MB (SPZ version 3: SuperSplat, Spark, Babylon.js and Niantic's loader read it), in the %s's "
+             "coordinates turned to SPZ's RUB", path, len(parameters["means"]), path.stat().st_size / 1e6, frame)
     return path
 
 
@@ -69,6 +92,7 @@ EXPORT_FORMATS: dict[str, tuple[ExportFormat, ...]] = {
     file_type: (ExportFormat(HasDensity, "a density to mesh (marching cubes)", _mesh_writer(file_type)),) for file_type in MESH_FORMATS
 }
 EXPORT_FORMATS["ply"] = (ExportFormat(HasGaussians, "Gaussians (a splat PLY)", _write_splats), *EXPORT_FORMATS["ply"])
+EXPORT_FORMATS["spz"] = (ExportFormat(HasGaussians, "Gaussians (a splat SPZ)", _write_splats_spz),)
 
 
 def formats_of(model: Any) -> list[str]:

@@ -10,11 +10,11 @@ import numpy as np
 import torch
 import trimesh
 
-from nerf_lightning.outputs.choices import EXPORT_FORMATS
+from nerf_lightning.outputs.choices import MESH_FORMATS
 from nerf_lightning.io import to_uint8, write_atomic
 from nerf_lightning.models.contract import HasDensity
 
-FORMATS = EXPORT_FORMATS  # a mesh can be written in each of them
+FORMATS = MESH_FORMATS
 
 
 @torch.no_grad()

@@ -86,7 +86,7 @@ def test_export_names_what_a_model_without_a_density_can_export(tmp_path):
     assert formats_of(Sphere()) == []
     with pytest.raises(ValueError, match=r"format=ply needs Gaussians \(a splat PLY\) or a density to mesh .*model, Sphere, has none: it has nothing nerf-export writes"):
         export_model(Sphere(), "ply", tmp_path, {})
-    with pytest.raises(ValueError, match=r"format must be one of ply, obj, glb, got 'stl'"):
+    with pytest.raises(ValueError, match=r"format must be one of ply, obj, glb, spz, got 'stl'"):
         export_model(Sphere(), "stl", tmp_path, {})
 
 

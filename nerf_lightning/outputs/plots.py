@@ -6,12 +6,10 @@ import io as _io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-import matplotlib
+# a bare Figure, not pyplot: drawing a PNG chooses no backend, so importing this leaves a notebook's inline figures be
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from nerf_lightning.io import write_atomic  # noqa: E402
+from nerf_lightning.io import write_atomic
 
 
 def plot_psnr_curves(
@@ -23,7 +21,8 @@ def plot_psnr_curves(
 ) -> Path:
     """One line per curve: ``{label: (steps, psnr_db)}``; curves of a single point are drawn as markers. The legend
     goes inside the axes where it fits best, or below them (``legend_below``), off the points."""
-    figure, axes = plt.subplots(figsize=(7, 4.2 + (0.25 * len(curves) if legend_below else 0.0)), dpi=110)
+    figure = Figure(figsize=(7, 4.2 + (0.25 * len(curves) if legend_below else 0.0)), dpi=110)
+    axes = figure.subplots()
     for label, (steps, psnr) in curves.items():
         style = {"marker": "o"} if len(steps) < 30 else {}
         axes.plot(list(steps), list(psnr), label=label, linewidth=1.4, **style)
@@ -39,5 +38,4 @@ def plot_psnr_curves(
     figure.tight_layout()
     buffer = _io.BytesIO()
     figure.savefig(buffer, format="png")
-    plt.close(figure)
     return write_atomic(path, buffer.getvalue())

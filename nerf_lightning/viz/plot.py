@@ -5,15 +5,13 @@ from __future__ import annotations
 import io as _io
 from pathlib import Path
 
-import matplotlib
+import torch
+# a bare Figure, not pyplot: drawing a PNG chooses no backend, so importing this leaves a notebook's inline figures be
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-
-from nerf_lightning.data.scene import Scene  # noqa: E402
-from nerf_lightning.io import write_atomic  # noqa: E402
-from nerf_lightning.viz.rays_sample import RaySample, frustum_corners  # noqa: E402
+from nerf_lightning.data.scene import Scene
+from nerf_lightning.io import write_atomic
+from nerf_lightning.viz.rays_sample import RaySample, frustum_corners
 
 
 def _draw_frusta(axes, scene: Scene, indices: list[int], depth: float, colour: str) -> None:
@@ -55,7 +53,7 @@ def plot_cameras_and_rays(scene: Scene, all_rays: RaySample, one_camera: RaySamp
     train = scene.train
     radius = float(train.c2w[:, :3, 3].norm(dim=-1).mean())
     depth = 0.12 * radius
-    figure = plt.figure(figsize=(13, 6.5), dpi=100)
+    figure = Figure(figsize=(13, 6.5), dpi=100)
 
     left = figure.add_subplot(1, 2, 1, projection="3d")
     _draw_frusta(left, scene, list(range(len(train))), depth, "tab:blue")
@@ -75,5 +73,4 @@ def plot_cameras_and_rays(scene: Scene, all_rays: RaySample, one_camera: RaySamp
     figure.tight_layout(rect=(0, 0, 1, 0.95))
     buffer = _io.BytesIO()
     figure.savefig(buffer, format="png")
-    plt.close(figure)
     return write_atomic(path, buffer.getvalue())

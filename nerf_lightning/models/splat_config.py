@@ -28,8 +28,10 @@ def config_before_04(model: Mapping[str, Any]) -> dict[str, Any]:
     strategy = model.get("strategy")
     if isinstance(strategy, Mapping) and strategy.get("_target_") in MOVED_TARGETS:
         model["strategy"] = {**strategy, "_target_": MOVED_TARGETS[strategy["_target_"]]}
-    if isinstance(model.get("rasterizer"), str) and model["rasterizer"] in RASTERIZER_TARGETS:
-        model["rasterizer"] = {"_target_": RASTERIZER_TARGETS[model.pop("rasterizer")],
+    rasterizer = model.get("rasterizer", "auto" if {"max_pairs", "antialiased"} & set(model) else None)
+    if isinstance(rasterizer, str) and rasterizer in RASTERIZER_TARGETS:  # a name, or (before it had one) only its keys
+        model.pop("rasterizer", None)
+        model["rasterizer"] = {"_target_": RASTERIZER_TARGETS[rasterizer],
                                "max_pairs": model.pop("max_pairs", 4_000_000), "antialiased": model.pop("antialiased", False)}
     old = {key: model.pop(key) for key in OLD_KEYS if key in model}
     if not old:

@@ -214,7 +214,7 @@ def kernels(device_type: str) -> tuple:
     tests do)."""
     if device_type == "cpu" and os.environ.get("TRITON_INTERPRET") != "1":
         raise RuntimeError("the Triton rasteriser draws GPU tensors; CPU ones only in Triton's interpreter "
-                           "(TRITON_INTERPRET=1 before triton is imported); on a CPU use model.rasterizer=tiles")
+                           "(TRITON_INTERPRET=1 before triton is imported); on a CPU use model/rasterizer=tiles")
     return _composite, _composite_backward, _sum_slots
 
 

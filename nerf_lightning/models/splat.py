@@ -48,7 +48,8 @@ class SplatModule(SceneModule):
     Under the model contract it renders a camera (:meth:`render_view`); it has no density field to mesh.
     Logs ``train/loss`` every step, ``train/psnr`` and ``train/gaussians`` at the steps the logger writes and the
     last (and the per-view tables' penalties,
-    ``train/loss_appearance`` and ``train/loss_camera_*``, where they are on) and ``val/psnr``, ``val/ssim`` (and
+    ``train/loss_appearance`` and ``train/loss_camera_*``, where they are on; ``train/loss_mask`` and ``train/loss_depth``
+    with their losses) and ``val/psnr``, ``val/ssim`` (and
     ``val/depth_error`` where the scene has true depth) over whole held-out views.
 
     Args:

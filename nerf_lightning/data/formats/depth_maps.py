@@ -16,6 +16,7 @@ finite) is NaN: unknown, left out of losses and scores.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -56,7 +57,7 @@ def read_depth_file(path: Path) -> np.ndarray:
 
 
 def frame_depth(path: Path, unit_scale: float, K: torch.Tensor, height: int, width: int, full_size: tuple[int, int],
-                world_scale: float, undistort=None) -> torch.Tensor:
+                world_scale: float, undistort: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """(height, width) float32 distances along the pixels' unit rays in the scene's world of the depth map at ``path``
     (camera z times ``unit_scale`` in the capture's units), NaN where unknown, for a photo of ``full_size`` (H, W)
     loaded at ``height`` x ``width`` with intrinsics ``K`` (3, 3) (downscaled); ``undistort``: what undistorts the
@@ -75,8 +76,10 @@ def frame_depth(path: Path, unit_scale: float, K: torch.Tensor, height: int, wid
     return (z * world_scale * pixel_ray_lengths(K.double(), height, width)).float()
 
 
-def capture_depths(path: Path, meta: dict, frames: list, sizes: dict, lenses: dict, height: int, width: int,
-                   world_from_capture: torch.Tensor, undistort=None) -> torch.Tensor | None:
+def capture_depths(path: Path, meta: dict, frames: list[tuple[int, dict, Path]], sizes: dict[Path, tuple[int, int]],
+                   lenses: dict[Path, tuple[torch.Tensor, torch.Tensor]], height: int, width: int,
+                   world_from_capture: torch.Tensor,
+                   undistort: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor | None:
     """(N, height, width) the depth maps of ``frames`` ((number, frame, image path), in the views' order) from their
     ``depth_file_path``, by :func:`frame_depth`; None where no frame has one. ``sizes``: each image's full (H, W);
     ``lenses``: its (K, distortion), K downscaled; ``undistort(image, K, distortion)``: the loader's. ValueError

@@ -40,8 +40,8 @@ class ViewDataModule(SceneDataModule):
     of the patch's top-left pixel in the view ((0, 0) for a whole view), and ``height``, ``width`` (h, w: the
     view's size, or ``patch_size``); with ``data.masks=exclude``, ``mask`` (h, w) bool, the pixels the loss covers
     (with ``background`` the image shows the background colour outside the mask; :mod:`~nerf_lightning.data.masks`);
-    where the scene has depth, ``depth`` (h, w) (NaN unknown, inf none). The loader yields only ``camera_index`` and ``offset``, drawn with the step's
-    seeded generator (a resumed run draws the same); :meth:`on_after_batch_transfer` cuts the image and camera on
+    where the scene has depth, ``depth`` (h, w) (NaN unknown, inf none). The loader yields only ``camera_index`` and
+    ``offset``, drawn with the step's seeded generator (a resumed run draws the same); :meth:`on_after_batch_transfer` cuts the image and camera on
     the model's device from the training images, uploaded there once where they fit (see
     :meth:`~nerf_lightning.data.scene_data.SceneDataModule.cameras_and_images`), else cut on the host.
     Validation batch: :func:`~nerf_lightning.data.scene_data.view_batch` of one held-out view.

@@ -128,3 +128,13 @@ def test_depth_maps_of_a_distorted_capture_are_undistorted_with_their_photos(sma
     assert depth.shape == true.shape and bool(known.any()) and bool((depth[known] > 0).all())
     # a slight distortion moves the surfaces by under a pixel or two: the known depths are the surfaces' depths
     assert float(((depth - true)[known & torch.isfinite(true)]).abs().median()) < 0.05
+
+
+def test_a_coarse_views_depth_is_each_blocks_mean_of_its_known_values():
+    from nerf_lightning.data.views import coarse_view
+
+    depth = torch.tensor([[1.0, 3.0, float("nan"), float("nan")], [1.0, 3.0, float("nan"), 4.0]])
+    drawn = {"image": torch.zeros(2, 4, 3), "K": torch.eye(3), "depth": depth, "height": 2, "width": 4}
+    coarse = coarse_view(drawn, 2)
+    assert coarse["depth"].tolist() == [[2.0, 4.0]]
+    assert torch.isnan(downscale_depth(torch.full((2, 2), float("nan")), 2)).all()

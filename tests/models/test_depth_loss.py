@@ -17,8 +17,8 @@ from nerf_lightning.training import train
 @pytest.fixture(scope="module")
 def captures(procedural_scene, tmp_path_factory):
     """A phone-style capture of 12 training and 2 held-out views, and the same views with their true depth."""
-    scene = Scene(splits={"train": procedural_scene.train.subset(list(range(0, 24, 2))), "val": procedural_scene.splits["val"].subset([0, 1])},
-                  near=procedural_scene.near, far=procedural_scene.far, background=procedural_scene.background)
+    splits = {"train": procedural_scene.train.subset(list(range(0, 24, 2))), "val": procedural_scene.splits["val"].subset([0, 1])}
+    scene = Scene(splits=splits, near=procedural_scene.near, far=procedural_scene.far, background=procedural_scene.background)
     root = tmp_path_factory.mktemp("depth_captures")
     return (write_depth_capture(scene, root / "phone", shrink=4, noise=0.02),
             write_depth_capture(scene, root / "truth", suffix=".npy"))
@@ -34,7 +34,8 @@ def scene_overrides(path) -> list[str]:
 def test_a_nerf_trains_with_the_depth_loss_and_nerf_eval_scores_depth(captures, tmp_path):
     phone, truth = captures
     config = compose_config(["experiment=fast", *scene_overrides(phone), "model.field.encoding.n_levels=4",
-                             "model.field.encoding.log2_table_size=12", "model.field.encoding.max_resolution=64", "model.field.encoding.compile_evaluation=false",
+                             "model.field.encoding.log2_table_size=12", "model.field.encoding.max_resolution=64",
+                             "model.field.encoding.compile_evaluation=false",
                              "model.sampler.grid.resolution=16", "data.batch_size=128", "trainer.max_steps=6",
                              "data.val_every=6", "model.depth_loss=0.1", f"paths.output_dir={tmp_path / 'run'}"])
     metrics = train(config)

@@ -12,6 +12,7 @@ import torch
 
 from nerf_lightning.data.formats.depth_maps import write_depth_png
 from nerf_lightning.data.formats.transforms import transforms_meta
+from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.images import downscale_depth
 from nerf_lightning.data.scene import Scene, Views
 from nerf_lightning.geometry.cameras import pixel_ray_lengths
@@ -34,10 +35,10 @@ def phone_depth(z: torch.Tensor, shrink: int = 1, noise: float = 0.0, generator:
 
 def write_depth_capture(scene: Scene, root: str | Path, suffix: str = ".png", shrink: int = 1, noise: float = 0.0,
                         seed: int = 0, splits: tuple[str, ...] | None = None) -> Path:
-    """``scene``'s ``splits`` (views with images and depth; None: each of train, val and test it has) as a ``transforms.json`` capture in ``root``: images
-    ``images/<split>_<i>.png``, depth maps ``depth/<split>_<i><suffix>`` (``.png``: millimetres, ``.npy``: metres) made
-    by :func:`phone_depth` (``shrink``, ``noise``, seeded by ``seed``), the splits named (``<split>_filenames``).
-    Returns the json's path."""
+    """``scene``'s ``splits`` (views with images and depth; None: each of train, val and test it has) as a
+    ``transforms.json`` capture in ``root``: images ``images/<split>_<i>.png``, depth maps ``depth/<split>_<i><suffix>``
+    (``.png``: millimetres, ``.npy``: metres) made by :func:`phone_depth` (``shrink``, ``noise``, seeded by ``seed``),
+    the splits named (``<split>_filenames``). Returns the json's path."""
     if suffix not in (".png", ".npy"):
         raise ValueError(f"depth maps are written as .png (millimetres) or .npy (metres), got '{suffix}'")
     root = Path(root)
@@ -48,7 +49,7 @@ def write_depth_capture(scene: Scene, root: str | Path, suffix: str = ".png", sh
         file_paths = [f"images/{split}_{index:03d}.png" for index in range(len(views))]
         meta = transforms_meta(views, file_paths)
         for index, (frame, z) in enumerate(zip(meta["frames"], camera_z(views))):
-            write_png(root / frame["file_path"], views.images[index].float() / 255.0 if views.images.dtype == torch.uint8 else views.images[index])
+            write_png(root / frame["file_path"], as_float_rgb(views.images[index]))
             frame["depth_file_path"] = f"depth/{split}_{index:03d}{suffix}"
             depth = phone_depth(z, shrink, noise, generator)
             if suffix == ".png":

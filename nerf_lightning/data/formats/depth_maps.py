@@ -17,6 +17,7 @@ finite) is NaN: unknown, left out of losses and scores.
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -103,7 +104,7 @@ def capture_depths(path: Path, meta: dict, frames: list[tuple[int, dict, Path]],
         elif isinstance(unit_scale, bool) or not isinstance(unit_scale, (int, float)) or not unit_scale > 0:
             raise ValueError(f"{path}: frame {number}: 'depth_unit_scale_factor' must be a number > 0, got {unit_scale!r}")
         K, distortion = lenses[image_path]
-        lens = (lambda image, K=K, distortion=distortion: undistort(image, K, distortion)) if undistort is not None and distortion.any() else None
+        lens = partial(undistort, K=K, distortion=distortion) if undistort is not None and distortion.any() else None
         depths.append(frame_depth(depth_path, float(unit_scale), K, height, width, sizes[image_path], world_scale, lens))
     return torch.stack(depths)
 

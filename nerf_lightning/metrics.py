@@ -1,6 +1,6 @@
 """Quality metrics: of images (PSNR and SSIM from kornia, depth error; an SSIM map for losses, equal to kornia's; the
-colour correction before the ``cc_`` scores) and of meshes (Chamfer distance); and the masks' opacity loss (binary
-cross-entropy against the object masks)."""
+colour correction before the ``cc_`` scores) and of meshes (Chamfer distance); the masks' opacity loss (binary
+cross-entropy against the object masks) and the depth loss (L1 against a capture's depth maps)."""
 
 from __future__ import annotations
 
@@ -19,6 +19,18 @@ def opacity_mask_loss(accumulation: torch.Tensor, object_mask: torch.Tensor, wei
     if weight is None:
         return entropy.mean()
     return (entropy * weight).sum() / weight.sum().clamp(min=1)
+
+
+def depth_l1(depth: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """() mean absolute difference of rendered ``depth`` (...) and a capture's ``target`` (...) (both distances along
+    unit rays) over the pixels whose target is known (finite and > 0: NaN unknown, inf no surface); 0 where none is.
+    ``weight`` (...): a weighted mean instead (0 leaves a pixel out). Of fixed shapes, so a compiled step takes it."""
+    known = torch.isfinite(target) & (target > 0)
+    if weight is not None:
+        known = known & (weight > 0)
+    difference = torch.where(known, depth - torch.where(known, target, torch.zeros_like(target)), torch.zeros_like(depth)).abs()
+    counted = known.to(depth.dtype) if weight is None else known.to(depth.dtype) * weight
+    return (difference * counted).sum() / counted.sum().clamp(min=1)
 
 
 def mse_to_psnr(mse: torch.Tensor) -> torch.Tensor:

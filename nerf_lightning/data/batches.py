@@ -31,6 +31,7 @@ class RayBatch(TypedDict, total=False):
     rgb: torch.Tensor  # (N, 3) float in [0, 1], the pixels' colours
     camera_index: torch.Tensor  # (N,) long, the training view each ray is of
     object_mask: torch.Tensor  # (N,) bool, data.masks=background
+    depth: torch.Tensor  # (N,) distance along each ray to its surface, NaN unknown, inf none; where the scene has depth
 
 
 class ViewBatch(TypedDict, total=False):
@@ -46,6 +47,7 @@ class ViewBatch(TypedDict, total=False):
     object_mask: torch.Tensor  # (h, w) bool, data.masks=background
     loss_mask: torch.Tensor  # (h, w) bool, data.masks=exclude
     scale: int  # a coarse view's downscale (data.coarse_scale); absent: full resolution
+    depth: torch.Tensor  # (h, w) distance along each pixel's unit ray, NaN unknown, inf none; where the scene has depth
 
 
 class HeldOutView(TypedDict, total=False):
@@ -57,7 +59,7 @@ class HeldOutView(TypedDict, total=False):
     width: int
     index: int  # in the views it is one of
     image: torch.Tensor  # (H, W, 3) float in [0, 1], where the views have images
-    depth: torch.Tensor  # (H, W), where the scene has true depth
+    depth: torch.Tensor  # (H, W) distance along each pixel's unit ray (NaN unknown, inf none), where the scene has depth
     object_mask: torch.Tensor  # (H, W) bool, with masks and a masks mode
 
 

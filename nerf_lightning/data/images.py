@@ -97,6 +97,16 @@ def downscale_mask(mask: torch.Tensor, factor: int) -> torch.Tensor:
     return downscale(mask[..., None].float(), factor)[..., 0] >= 0.5
 
 
+def downscale_depth(depth: torch.Tensor, factor: int) -> torch.Tensor:
+    """(H, W) distances, NaN where unknown -> (H // factor, W // factor): each block the mean of its known values
+    (NaN where it has none), the blocks those of :func:`downscale`, so a depth map stays aligned with its image."""
+    if factor == 1:
+        return depth
+    height, width = depth.shape[0] // factor, depth.shape[1] // factor
+    blocks = depth[: height * factor, : width * factor].reshape(height, factor, width, factor).transpose(1, 2)
+    return blocks.reshape(height, width, -1).nanmean(dim=-1)
+
+
 def image_size(path: str | Path) -> tuple[int, int]:
     """(height, width) of a PNG or JPG read from its header, without decoding the pixels."""
     try:

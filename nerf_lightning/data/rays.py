@@ -24,7 +24,8 @@ class RayDataModule(SceneDataModule):
     :class:`~nerf_lightning.data.scene_data.SceneDataModule` has them.
 
     Training batch: ``rays_o``, ``rays_d`` (N, 3) (unit directions, OpenCV cameras, world units), ``rgb``
-    (N, 3) in [0, 1] and ``camera_index`` (N,), the training view of each ray; with ``data.masks=background``,
+    (N, 3) in [0, 1] and ``camera_index`` (N,), the training view of each ray; where the scene has depth, ``depth``
+    (N,) the distance along each ray to its surface (NaN unknown, inf none); with ``data.masks=background``,
     ``mask`` (N,) bool too, the colour the background where it is False (:mod:`~nerf_lightning.data.masks`; with
     ``exclude`` the rays are drawn among the masked pixels alone). Where the scene has an object's box
     (``data.object_box``), among the pixels of each view's rectangle that holds the box's image alone: a ray that
@@ -117,6 +118,10 @@ class RayDataModule(SceneDataModule):
         colours = self.rgb[index.cpu()].to(index.device, non_blocking=True) if images is None else images.reshape(-1, 3)[index]
         camera_index = index // (self.scene.train.height * self.scene.train.width)
         rays: RayBatch = {"rays_o": rays_o, "rays_d": rays_d, "rgb": as_float_rgb(colours), "camera_index": camera_index}
+        depth = self.train_depth(index.device)
+        if depth is not None:  # a capture's depth maps: what a depth loss (model.depth_loss) reads
+            depth = depth.reshape(-1)
+            rays["depth"] = depth[index.cpu()].to(index.device, non_blocking=True) if depth.device != index.device else depth[index]
         if self.mask_mode == "background":  # the pixels outside the object show the background; the model sees which
             masks = self.train_masks(index.device).reshape(-1)
             rays["object_mask"] = masks[index.cpu()].to(index.device, non_blocking=True) if masks.device != index.device else masks[index]

@@ -21,8 +21,9 @@ class Views:
         images: (N, H, W, 3) RGB composited onto the scene's background: uint8 0..255 (what the loaders give; possibly
             memory-mapped, see :mod:`~nerf_lightning.data.image_stack`) or float in [0, 1] (views made in code);
             :func:`~nerf_lightning.data.image_stack.as_float_rgb` reads either. None for cameras only (a render path).
-        depth: (N, H, W) true distance along each pixel's unit ray to the first surface, inf where the ray
-            hits nothing; None where unknown.
+        depth: (N, H, W) distance along each pixel's unit ray to the first surface (the procedural scene's true one,
+            or a capture's depth maps: :mod:`~nerf_lightning.data.formats.depth_maps`), inf where the ray hits
+            nothing, NaN where a pixel's is unknown (a depth map without a reading there); None where unknown.
         masks: (N, H, W) bool, True where a pixel shows the object (a capture's masks: a turntable's object, or the
             part of a photo to learn from; possibly memory-mapped like the images); None where the capture has none.
             What training and evaluation do with them is the datamodule's ``masks`` mode

@@ -107,6 +107,7 @@ class SceneDataModule(StepBatchesDataModule):
         self.space: SceneSpace | None = None
         self._on_device: dict[torch.device, tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = {}
         self._masks_on_device: dict[torch.device, torch.Tensor] = {}
+        self._depth_on_device: dict[torch.device, torch.Tensor] = {}
         self._background_on_device: dict[torch.device, torch.Tensor] = {}
 
     def setup(self, stage: str | None = None) -> None:
@@ -160,6 +161,16 @@ class SceneDataModule(StepBatchesDataModule):
             on_device = self.cameras_and_images(device)[2] is not None
             self._masks_on_device[device] = self.scene.train.masks.to(device) if on_device else self.scene.train.masks
         return self._masks_on_device[device]
+
+    def train_depth(self, device: torch.device) -> torch.Tensor | None:
+        """The training views' depth (V, H, W) (:class:`~nerf_lightning.data.scene.Views`: NaN where unknown) on
+        ``device`` where their images went there, else on the host; moved once. None where the scene has none."""
+        if self.scene.train.depth is None:
+            return None
+        if device not in self._depth_on_device:
+            on_device = self.cameras_and_images(device)[2] is not None
+            self._depth_on_device[device] = self.scene.train.depth.to(device) if on_device else self.scene.train.depth
+        return self._depth_on_device[device]
 
     def background_on(self, device: torch.device) -> torch.Tensor:
         """The scene's background colour (3,) on ``device``, moved once: a copy from the host at every training step

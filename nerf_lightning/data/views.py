@@ -10,7 +10,7 @@ import torch
 
 from nerf_lightning.data.batches import HeldOutView, ViewBatch
 from nerf_lightning.data.image_stack import as_float_rgb
-from nerf_lightning.data.images import downscale, downscale_mask
+from nerf_lightning.data.images import downscale, downscale_depth, downscale_mask
 from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.data.scene_data import SceneDataModule
@@ -39,8 +39,9 @@ class ViewDataModule(SceneDataModule):
     by ``offset``), ``c2w`` (4, 4), ``camera_index`` () the training view, ``offset`` (2,) long, the column and row
     of the patch's top-left pixel in the view ((0, 0) for a whole view), and ``height``, ``width`` (h, w: the
     view's size, or ``patch_size``); with ``data.masks=exclude``, ``mask`` (h, w) bool, the pixels the loss covers
-    (with ``background`` the image shows the background colour outside the mask; :mod:`~nerf_lightning.data.masks`). The loader yields only ``camera_index`` and ``offset``, drawn with the step's
-    seeded generator (a resumed run draws the same); :meth:`on_after_batch_transfer` cuts the image and camera on
+    (with ``background`` the image shows the background colour outside the mask; :mod:`~nerf_lightning.data.masks`);
+    where the scene has depth, ``depth`` (h, w) (NaN unknown, inf none). The loader yields only ``camera_index`` and
+    ``offset``, drawn with the step's seeded generator (a resumed run draws the same); :meth:`on_after_batch_transfer` cuts the image and camera on
     the model's device from the training images, uploaded there once where they fit (see
     :meth:`~nerf_lightning.data.scene_data.SceneDataModule.cameras_and_images`), else cut on the host.
     Validation batch: :func:`~nerf_lightning.data.scene_data.view_batch` of one held-out view.
@@ -136,6 +137,9 @@ class ViewDataModule(SceneDataModule):
                 drawn["object_mask"] = mask
             else:  # exclude: the model's loss covers the masked pixels alone
                 drawn["loss_mask"] = mask
+        depth = self.train_depth(device)
+        if depth is not None:  # a capture's depth maps: what a depth loss (model.loss.depth_loss) reads
+            drawn["depth"] = depth[view, y0 : y0 + height, x0 : x0 + width].to(device, non_blocking=True)
         if scale > 1:
             drawn = coarse_view(drawn, scale)
         return drawn
@@ -159,12 +163,15 @@ def coarse_schedule(coarse_scale: int | Sequence[int], coarse_steps: int | Seque
 def coarse_view(drawn: ViewBatch, scale: int) -> ViewBatch:
     """A whole view's batch area-averaged by ``scale``: its image (the object over the background already, with
     ``background`` masks), its masks (a pixel the object where half its block is) and its camera, whose focal lengths
-    and principal point shrink with the pixels (the pixel centres' convention keeps the average exact)."""
+    and principal point shrink with the pixels (the pixel centres' convention keeps the average exact); its depth, each
+    block the mean of its known values."""
     K = drawn["K"].clone()
     K[..., :2, :] = K[..., :2, :] / scale
     coarse: ViewBatch = {**drawn, "image": downscale(drawn["image"], scale), "K": K, "scale": scale}
     for key in ("object_mask", "loss_mask"):
         if key in drawn:
             coarse[key] = downscale_mask(drawn[key], scale)
+    if "depth" in drawn:
+        coarse["depth"] = downscale_depth(drawn["depth"], scale)
     coarse["height"], coarse["width"] = coarse["image"].shape[:2]
     return coarse

@@ -167,3 +167,13 @@ def box_pixel_rectangles(K: torch.Tensor, c2w: torch.Tensor, height: int, width:
     whole = (z <= 1e-6 * (high - low).norm()).any(1) | (rectangles[:, 2] <= rectangles[:, 0]) | (rectangles[:, 3] <= rectangles[:, 1])
     rectangles[whole] = torch.tensor([0, 0, width, height])
     return rectangles
+
+
+def pixel_ray_lengths(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(H, W): how far along a pixel's ray (a unit direction) the plane z = 1 lies, |K^-1 [u, v, 1]|, so that a
+    camera z (a splat's depth, a phone's z-depth map) times it is the distance the project's rays measure depth in
+    (:func:`pixel_to_ray`)."""
+    v, u = torch.meshgrid(torch.arange(height, device=K.device, dtype=K.dtype) + 0.5,
+                          torch.arange(width, device=K.device, dtype=K.dtype) + 0.5, indexing="ij")
+    x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    return torch.sqrt(x * x + y * y + 1.0)

@@ -31,11 +31,20 @@ def check_train_background(value: str) -> str:
     return value
 
 
-def check_mask_loss(weight: float) -> float:
-    """``weight`` of ``model.mask_loss`` if it is a finite number >= 0, else one line naming the key."""
+def check_mask_loss(weight: float, key: str = "model.mask_loss") -> float:
+    """``weight`` of a loss (``key``: ``model.mask_loss``, ``model.depth_loss``) if it is a finite number >= 0, else one
+    line naming the key."""
     if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-        raise ValueError(f"model.mask_loss must be a number >= 0 (0: none), got {weight!r}")
+        raise ValueError(f"{key} must be a number >= 0 (0: none), got {weight!r}")
     return float(weight)
+
+
+def depth_for_depth_loss(batch: dict[str, Any], key: str = "model.depth_loss") -> torch.Tensor:
+    """The batch's ``depth`` (a capture's depth maps), or one line saying what the depth loss (``key``) needs."""
+    if "depth" not in batch:
+        raise ValueError(f"{key} > 0 needs depth in each training batch: a capture whose frames have a 'depth_file_path' "
+                         f"(data/scene=transforms) or the procedural scene; set {key}=0 otherwise")
+    return batch["depth"]
 
 
 def masks_for_mask_loss(batch: dict[str, Any]) -> torch.Tensor:

@@ -17,8 +17,9 @@ from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import mse_to_psnr, opacity_mask_loss
-from nerf_lightning.models.base import SceneModule, check_mask_loss, check_train_background, masks_for_mask_loss
+from nerf_lightning.metrics import depth_l1, mse_to_psnr, opacity_mask_loss
+from nerf_lightning.models.base import (SceneModule, check_mask_loss, check_train_background, depth_for_depth_loss,
+                                         masks_for_mask_loss)
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.models.radiance_field_config import config_before_04
 from nerf_lightning.parameters.exposure import ViewExposure
@@ -64,6 +65,10 @@ class RadianceFieldModule(SceneModule):
             (NeuS's mask loss; logged as ``train/loss_mask``), with ``data.masks=background``: the field is taught
             where the object ends by the masks themselves, not only by the background's colour, which a dark surface
             or a hole in the object (seen through, masked out) shares. 0: none.
+        depth_loss: the weight of the mean absolute difference between each training ray's rendered depth and the
+            capture's (its depth maps, :mod:`~nerf_lightning.data.formats.depth_maps`; logged as ``train/loss_depth``)
+            over the rays whose depth is known: the geometry a phone's LiDAR measured, where the photos alone leave it
+            loose. Not in NDC (``data.ndc``), whose distances are not the world's. 0: none.
         compile: run the training step's forward and loss (sampling, field, compositing, loss) as one graph through
             ``torch.compile(fullgraph=True)``, its backward compiled with it (inductor: C++ on a CPU, Triton kernels on
             a GPU); the sampler's grid refreshes stay outside. Only where no size in the step depends on the data
@@ -88,6 +93,7 @@ class RadianceFieldModule(SceneModule):
         exposure: ViewExposure | None = None,
         train_background: str = "scene",
         mask_loss: float = 0.0,
+        depth_loss: float = 0.0,
         compile: bool = False,
         compile_mode: str | None = None,
     ) -> None:
@@ -98,6 +104,7 @@ class RadianceFieldModule(SceneModule):
         self.camera_refinement, self.exposure = camera_refinement, exposure
         self.train_background = check_train_background(train_background)
         self.mask_loss = check_mask_loss(mask_loss)
+        self.depth_loss = check_mask_loss(depth_loss, "model.depth_loss")
         if compile:
             check_compilable(self.renderer, sampler)
         self.rays_that_fit: torch.Tensor | None = None  # see training_step
@@ -143,6 +150,9 @@ class RadianceFieldModule(SceneModule):
         space = getattr(getattr(self.trainer, "datamodule", None), "space", None)
         if space is not None:
             self.use_space(space)
+        if self.depth_loss and self.space.ndc is not None:
+            raise ValueError("model.depth_loss > 0 compares distances along the world's rays, and data.ndc=true samples in NDC: "
+                             "set model.depth_loss=0 or data.ndc=false")
 
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, perturb: bool = False, camera_indices: torch.Tensor | None = None) -> dict[str, Any]:
         """(N, 3) world rays with unit directions (and (N,) the training image of each, or None for other views) ->
@@ -238,6 +248,8 @@ class RadianceFieldModule(SceneModule):
         self.sampler.update(self.global_step, self.field)  # a grid refresh: outside the compiled graph, on its own steps
         if self.mask_loss:
             masks_for_mask_loss(batch)  # one line, outside the compiled graph, where the batch has no masks
+        if self.depth_loss:
+            depth_for_depth_loss(batch)  # the same for depth
         terms = self.step_losses(batch) if self.compiled_step is None else self.compiled_step(self, batch)
         loss = terms.pop("loss")
         # how many rays the sampler's samples a step would hold (RaySamples.rays_that_fit: models.ray_budget.RayBudget
@@ -282,6 +294,8 @@ class RadianceFieldModule(SceneModule):
         if self.mask_loss:
             # a ray the sampler cut short has only part of its opacity: left out, as from the colours' loss
             extra_losses["mask"] = self.mask_loss * opacity_mask_loss(out["accumulation"], batch["object_mask"], complete)
+        if self.depth_loss:  # as the colours' loss, without the rays the sampler cut short
+            extra_losses["depth"] = self.depth_loss * depth_l1(out["depth"], batch["depth"], complete)
         if self.camera_refinement is not None:
             extra_losses.update(self.camera_refinement.penalties())
         appearance = self.field.appearance

@@ -2,9 +2,10 @@
 occupancy grid's step of a fixed number of samples (``capacity``, ``march_capacity`` on the occupancy-grid sampler,
 with ``model/renderer=table``) is its own sampler, ``model/sampler=fixed_shape_grid``
 (:class:`~nerf_lightning.rendering.FixedShapeGridSampler`), whose samples either renderer composites in one pass; and
-the ``VolumeRenderer`` of before 0.3's two renderers is the one its ``fixed_shapes`` named.
+the ``VolumeRenderer`` of before 0.3's two renderers is the one its ``fixed_shapes`` named; a config without
+``depth_loss`` (before 0.5) has it 0.
 :func:`~nerf_lightning.checkpoints.load_model` asks the model's class for it (``RadianceFieldModule.upgrade_config``);
-a config of 0.4 passes through unchanged."""
+a config of 0.4 passes through with only ``depth_loss`` (0: none) added where it has none."""
 
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ TABLE = (f"{RENDERING}.TableRenderer", f"{RENDERING}.table.TableRenderer")
 
 def config_before_04(model: Mapping[str, Any]) -> dict[str, Any]:
     """The model config (a plain dict, as checkpoints keep it) with the fixed-shape march of before 0.4 as the
-    ``fixed_shape_grid`` sampler and the ``VolumeRenderer`` as the renderer it chose."""
+    ``fixed_shape_grid`` sampler, the ``VolumeRenderer`` as the renderer it chose, and ``depth_loss`` 0 where absent."""
     model = dict(model)
+    model.setdefault("depth_loss", 0.0)  # a run of before the depth loss trained without it
     renderer = model.get("renderer")
     if isinstance(renderer, Mapping) and renderer.get("_target_") == f"{RENDERING}.VolumeRenderer":
         renderer = dict(renderer)

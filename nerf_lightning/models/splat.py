@@ -22,6 +22,7 @@ from nerf_lightning.data.image_stack import as_float_rgb
 from nerf_lightning.data.masks import composite_background
 from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.devices import memory_of
+from nerf_lightning.geometry.cameras import pixel_ray_lengths
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.metrics import mse_to_psnr
@@ -34,7 +35,7 @@ from nerf_lightning.splats.appearance import ViewColourAffine
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.draw import Rasterizer, TileRasterizer, ViewDrawer, device_for_splats
 from nerf_lightning.splats.loss import SplatLoss
-from nerf_lightning.splats.projection import Projection, pixel_ray_lengths
+from nerf_lightning.splats.projection import Projection
 from nerf_lightning.splats.sh import coefficients_for
 from nerf_lightning.splats.strategy import Strategy
 
@@ -47,7 +48,8 @@ class SplatModule(SceneModule):
     Under the model contract it renders a camera (:meth:`render_view`); it has no density field to mesh.
     Logs ``train/loss`` every step, ``train/psnr`` and ``train/gaussians`` at the steps the logger writes and the
     last (and the per-view tables' penalties,
-    ``train/loss_appearance`` and ``train/loss_camera_*``, where they are on) and ``val/psnr``, ``val/ssim`` (and
+    ``train/loss_appearance`` and ``train/loss_camera_*``, where they are on; ``train/loss_mask`` and ``train/loss_depth``
+    with their losses) and ``val/psnr``, ``val/ssim`` (and
     ``val/depth_error`` where the scene has true depth) over whole held-out views.
 
     Args:
@@ -277,7 +279,7 @@ class SplatModule(SceneModule):
             background = torch.rand(3, device=image.device, dtype=image.dtype)
             if "object_mask" in batch:
                 image = composite_background(image, batch["object_mask"], background)
-        out, projection = self.draw(batch["K"], c2w, height, width, background=background, depth=False)
+        out, projection = self.draw(batch["K"], c2w, height, width, background=background, depth=self.loss.depth_loss > 0)
         if projection.means2d.requires_grad:
             projection.means2d.retain_grad()  # the strategy reads the screen-space gradient
         # the strategy reads gradients as of a whole view: a patch's loss, a mean over fewer pixels, gives each of its
@@ -297,6 +299,10 @@ class SplatModule(SceneModule):
             mask_term = self.loss.of_mask(out["accumulation"], batch.get("object_mask"))
             loss = loss + mask_term
             self.log("train/loss_mask", mask_term.detach(), on_step=True, on_epoch=False)
+        if self.loss.depth_loss:
+            depth_term = self.loss.of_depth(out["depth"], batch.get("depth"), mask)
+            loss = loss + depth_term
+            self.log("train/loss_depth", depth_term.detach(), on_step=True, on_epoch=False)
         if not loss.requires_grad:  # the view saw no Gaussian: nothing to learn, but the step goes on
             loss = loss + sum(parameter.sum() for parameter in self.parameters()) * 0.0
         regulariser = None if self.strategy is None else self.strategy.loss(self.gaussians)  # MCMC's

@@ -3,7 +3,8 @@ start's seven keys became the ``model.start`` object (:mod:`~nerf_lightning.mode
 the ``model.loss`` object (:class:`~nerf_lightning.splats.loss.SplatLoss`), ``sh_degree_interval`` a key of the
 Gaussians, MCMC's strategy moved to :mod:`~nerf_lightning.splats.mcmc`, and the rasteriser's name, ``max_pairs`` and
 ``antialiased`` became the ``model.rasterizer`` object (:mod:`~nerf_lightning.splats.draw`). :func:`~nerf_lightning.checkpoints.load_model`
-asks the model's class for it (``SplatModule.upgrade_config``); a config of 0.4 passes through unchanged."""
+asks the model's class for it (``SplatModule.upgrade_config``); a config of 0.4 passes through with only the loss's
+``depth_loss`` (0: none) added where it has none."""
 
 from __future__ import annotations
 
@@ -33,6 +34,8 @@ def config_before_04(model: Mapping[str, Any]) -> dict[str, Any]:
         model.pop("rasterizer", None)
         model["rasterizer"] = {"_target_": RASTERIZER_TARGETS[rasterizer],
                                "max_pairs": model.pop("max_pairs", 4_000_000), "antialiased": model.pop("antialiased", False)}
+    if isinstance(model.get("loss"), Mapping):  # a run of before the depth loss trained without it
+        model["loss"] = {"depth_loss": 0.0, **model["loss"]}
     old = {key: model.pop(key) for key in OLD_KEYS if key in model}
     if not old:
         return model
@@ -45,7 +48,8 @@ def config_before_04(model: Mapping[str, Any]) -> dict[str, Any]:
     if "random_beside_points" in old:
         start["beside"] = old["random_beside_points"]
     model.setdefault("start", start)
-    model.setdefault("loss", {"_target_": "nerf_lightning.splats.loss.SplatLoss", **{key: old[key] for key in LOSS_KEYS if key in old}})
+    model.setdefault("loss", {"_target_": "nerf_lightning.splats.loss.SplatLoss", "depth_loss": 0.0,
+                              **{key: old[key] for key in LOSS_KEYS if key in old}})
     if "sh_degree_interval" in old and isinstance(model.get("gaussians"), Mapping):
         model["gaussians"] = {**model["gaussians"], "sh_degree_interval": old["sh_degree_interval"]}
     return model

@@ -1,7 +1,7 @@
 """The splats' photometric loss, the reference: (1 - w) L1 + w (1 - SSIM) of a drawn view against its photo (3DGS's),
 in PyTorch over :func:`~nerf_lightning.metrics.ssim_map`. :mod:`~nerf_lightning.splats.loss_fast` gives the same
 value and gradient in one numba pass on a CPU; the tests hold the two equal. :class:`SplatLoss` holds what a model's
-step is scored by (``model.loss``): the SSIM's weight, the mask loss and the training background."""
+step is scored by (``model.loss``): the SSIM's weight, the mask and depth losses and the training background."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
-from nerf_lightning.metrics import opacity_mask_loss, ssim_map
+from nerf_lightning.metrics import depth_l1, opacity_mask_loss, ssim_map
 
 
 def photometric_loss(rgb: torch.Tensor, image: torch.Tensor, ssim_weight: float,
@@ -44,18 +44,23 @@ class SplatLoss:
             ``data.masks=background`` the photo's pixels outside the mask show that colour too): a Gaussian then
             cannot stand for the background by being transparent, nor a dark surface by letting black through.
             Held-out views are drawn over the scene's background.
+        depth_loss: the weight of the mean absolute difference between each training pixel's drawn depth (the
+            distance along its unit ray) and the capture's (its depth maps; logged as ``train/loss_depth``), over the
+            pixels whose depth is known (and, with ``data.masks=exclude``, inside the mask). 0: none.
     """
 
     ssim_weight: float = 0.2
     mask_loss: float = 0.0
     train_background: str = "scene"
+    depth_loss: float = 0.0
 
     def __post_init__(self) -> None:
         if isinstance(self.ssim_weight, bool) or not (isinstance(self.ssim_weight, (int, float)) and 0 <= self.ssim_weight <= 1):
             raise ValueError(f"model.loss.ssim_weight must be a number in [0, 1], got {self.ssim_weight!r}")
-        weight = self.mask_loss
-        if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-            raise ValueError(f"model.loss.mask_loss must be a number >= 0 (0: none), got {weight!r}")
+        for key in ("mask_loss", "depth_loss"):
+            weight = getattr(self, key)
+            if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
+                raise ValueError(f"model.loss.{key} must be a number >= 0 (0: none), got {weight!r}")
         if self.train_background not in TRAIN_BACKGROUNDS:
             raise ValueError(f"model.loss.train_background must be one of {', '.join(TRAIN_BACKGROUNDS)}, got '{self.train_background}'")
 
@@ -77,3 +82,12 @@ class SplatLoss:
             raise ValueError("model.loss.mask_loss > 0 needs the object's masks in each training batch: data.masks=background "
                              "(and a capture with masks); set model.loss.mask_loss=0 otherwise")
         return self.mask_loss * opacity_mask_loss(accumulation, object_mask)
+
+    def of_depth(self, depth: torch.Tensor, target: torch.Tensor | None, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """() ``depth_loss`` x the mean absolute difference of the drawn ``depth`` (H, W) and the training batch's
+        ``target`` (H, W) over its known pixels (:func:`~nerf_lightning.metrics.depth_l1`; within ``mask`` (H, W) where
+        given); without a target, one line saying what the depth loss needs."""
+        if target is None:
+            raise ValueError("model.loss.depth_loss > 0 needs depth in each training batch: a capture whose frames have a "
+                             "'depth_file_path' (data/scene=transforms) or the procedural scene; set model.loss.depth_loss=0 otherwise")
+        return self.depth_loss * depth_l1(depth, target, None if mask is None else mask.to(depth.dtype))

@@ -142,15 +142,6 @@ def views_seeing(means: torch.Tensor, K: torch.Tensor, c2w: torch.Tensor, height
     return counts
 
 
-def pixel_ray_lengths(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(H, W): how far along a pixel's ray (a unit direction) the plane z = 1 lies, |K^-1 [u, v, 1]|, so that a
-    camera z times it is the distance the project's rays measure depth in (:func:`~nerf_lightning.geometry.cameras.pixel_to_ray`)."""
-    v, u = torch.meshgrid(torch.arange(height, device=K.device, dtype=K.dtype) + 0.5,
-                          torch.arange(width, device=K.device, dtype=K.dtype) + 0.5, indexing="ij")
-    x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
-    return torch.sqrt(x * x + y * y + 1.0)
-
-
 def inverse_sigmoid(value: float) -> float:
     """logit(value), for opacities stored as logits."""
     return math.log(value / (1.0 - value))

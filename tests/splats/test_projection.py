@@ -24,12 +24,12 @@ from kornia.geometry.camera.perspective import unproject_points
 from torch import nn
 
 from nerf_lightning.data.views import patch_camera
-from nerf_lightning.geometry.cameras import pixel_to_ray
+from nerf_lightning.geometry.cameras import pixel_ray_lengths, pixel_to_ray
 from nerf_lightning.geometry.space import SceneSpace
 from nerf_lightning.models.splat import SplatModule
 from nerf_lightning.splats.gaussians import PARAMETERS, Gaussians
 from nerf_lightning.splats.loss import SplatLoss
-from nerf_lightning.splats.projection import LOW_PASS, MAX_SIGMAS, MIN_ALPHA, NEAR_PLANE, pixel_ray_lengths, project
+from nerf_lightning.splats.projection import LOW_PASS, MAX_SIGMAS, MIN_ALPHA, NEAR_PLANE, project
 from nerf_lightning.splats.draw import RASTERIZERS
 from nerf_lightning.splats.sh import rgb_to_sh
 from nerf_lightning.splats.strategy import DefaultStrategy

@@ -24,6 +24,11 @@ Masks: nerfstudio's per-frame ``mask_path`` (relative to the json's folder; ``ne
 of 0s and 1s; :func:`~nerf_lightning.data.images.load_mask`), downscaled and undistorted as the image is, into
 ``views.masks``. Either every frame with an image has one, or none does.
 
+Depth: nerfstudio's per-frame ``depth_file_path`` (a 16-bit PNG in millimetres or a ``.npy`` in metres, the json's
+``depth_unit_scale_factor`` where it gives one), a phone's camera-z map of any size of its photo's shape, read into
+``views.depth`` as the distance along each pixel's unit ray in the normalised world
+(:mod:`~nerf_lightning.data.formats.depth_maps`). Either every frame with an image has one, or none does.
+
 Sparse points: nerfstudio's ``ply_file_path`` (relative to the json's folder; ``nerf-process-data`` writes
 ``sparse_pc.ply``), a PLY of the capture's points in the json's coordinates, is read into ``scene.points``, mapped by
 ``world_from_capture`` as the cameras are.
@@ -39,6 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerf_lightning.data.formats.depth_maps import capture_depths
 from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image, load_mask
@@ -129,8 +135,10 @@ def load_transforms(root: str | Path, downscale: int = 1, holdout_every: int = 8
     images = stack_images(image_paths, decode, cache=image_cache, label=path.parent.name,
                           recipe={"loader": "transforms", "downscale": downscale, "background": list(background)}, depends_on=[path])
     masks = _masks(path, [present[index] for index in order], sizes, lenses, downscale, image_cache)
+    depth = capture_depths(path, meta, [present[index] for index in order], sizes, lenses, images.shape[1], images.shape[2],
+                           world_from_capture, undistort)
     K = torch.stack([lenses[image_path][0] for image_path in image_paths])
-    views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images, masks=masks,
+    views = Views(K=K, c2w=c2w[order], height=images.shape[1], width=images.shape[2], images=images, masks=masks, depth=depth,
                   names=[image_path.name for image_path in image_paths])
     aabb_scale = float(meta["aabb_scale"]) if "aabb_scale" in meta else None
     if far is None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import imageio.v3 as iio
 import numpy as np
@@ -78,12 +79,12 @@ def frame_depth(path: Path, unit_scale: float, K: torch.Tensor, height: int, wid
 
 
 def capture_depths(path: Path, meta: dict, frames: list[tuple[int, dict, Path]], sizes: dict[Path, tuple[int, int]],
-                   lenses: dict[Path, tuple[torch.Tensor, torch.Tensor]], height: int, width: int,
+                   lenses: dict[Path, tuple[torch.Tensor, Any]], height: int, width: int,
                    world_from_capture: torch.Tensor,
-                   undistort: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor | None:
+                   undistort: Callable[[torch.Tensor, torch.Tensor, Any], torch.Tensor] | None = None) -> torch.Tensor | None:
     """(N, height, width) the depth maps of ``frames`` ((number, frame, image path), in the views' order) from their
     ``depth_file_path``, by :func:`frame_depth`; None where no frame has one. ``sizes``: each image's full (H, W);
-    ``lenses``: its (K, distortion), K downscaled; ``undistort(image, K, distortion)``: the loader's. ValueError
+    ``lenses``: its (K, lens), K downscaled; ``undistort(image, K, lens)``: the loader's. ValueError
     naming the frames without one where only some have one, and the key where a value is not a number or a name."""
     with_depth = [frame for _, frame, _ in frames if frame.get("depth_file_path") is not None]
     if not with_depth:
@@ -103,8 +104,8 @@ def capture_depths(path: Path, meta: dict, frames: list[tuple[int, dict, Path]],
             unit_scale = DEPTH_UNITS.get(depth_path.suffix.lower(), 1.0)
         elif isinstance(unit_scale, bool) or not isinstance(unit_scale, (int, float)) or not unit_scale > 0:
             raise ValueError(f"{path}: frame {number}: 'depth_unit_scale_factor' must be a number > 0, got {unit_scale!r}")
-        K, distortion = lenses[image_path]
-        lens = partial(undistort, K=K, distortion=distortion) if undistort is not None and distortion.any() else None
+        K, photo_lens = lenses[image_path]
+        lens = partial(undistort, K=K, lens=photo_lens) if undistort is not None and photo_lens.distorts() else None
         depths.append(frame_depth(depth_path, float(unit_scale), K, height, width, sizes[image_path], world_scale, lens))
     return torch.stack(depths)
 

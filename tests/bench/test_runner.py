@@ -193,7 +193,9 @@ def test_lpips_weights_named_once_reach_every_nerf_eval_the_runner_starts(tmp_pa
     from nerf_lightning.bench.runner import BenchmarkError, name_lpips_weights
     from nerf_lightning.outputs.choices import LPIPS_WEIGHTS_VARIABLE
 
-    monkeypatch.delenv(LPIPS_WEIGHTS_VARIABLE, raising=False)
+    # set, then removed, so that monkeypatch restores the variable as it was (absent too) after name_lpips_weights sets it
+    monkeypatch.setenv(LPIPS_WEIGHTS_VARIABLE, "")
+    monkeypatch.delenv(LPIPS_WEIGHTS_VARIABLE)
     name_lpips_weights(None)
     assert LPIPS_WEIGHTS_VARIABLE not in os.environ
     (tmp_path / "lpips").mkdir()

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nerf_lightning.data.formats.shared import every_frame_or_none
 from nerf_lightning.data.images import read_pixels
 from nerf_lightning.geometry.cameras import pixel_ray_lengths
 from nerf_lightning.io import write_atomic
@@ -86,13 +87,8 @@ def capture_depths(path: Path, meta: dict, frames: list[tuple[int, dict, Path]],
     ``depth_file_path``, by :func:`frame_depth`; None where no frame has one. ``sizes``: each image's full (H, W);
     ``lenses``: its (K, lens), K downscaled; ``undistort(image, K, lens)``: the loader's. ValueError
     naming the frames without one where only some have one, and the key where a value is not a number or a name."""
-    with_depth = [frame for _, frame, _ in frames if frame.get("depth_file_path") is not None]
-    if not with_depth:
+    if not every_frame_or_none(path, frames, "depth_file_path", "its depth map"):
         return None
-    if len(with_depth) < len(frames):
-        without = [str(frame["file_path"]) for _, frame, _ in frames if frame.get("depth_file_path") is None]
-        raise ValueError(f"{path}: {len(with_depth)} frames have a 'depth_file_path' but {len(without)} do not "
-                         f"({', '.join(without[:5])}{' ...' if len(without) > 5 else ''}): give every frame its depth map, or none")
     world_scale = float(world_from_capture[:3, :3].double().det().abs() ** (1.0 / 3.0))
     depths = []
     for number, frame, image_path in frames:

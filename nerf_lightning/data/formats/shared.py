@@ -59,6 +59,19 @@ def apply_similarity(transform: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor
     return out
 
 
+def every_frame_or_none(path: Path, frames: list[tuple[int, dict, Path]], key: str, what: str) -> bool:
+    """Whether the json's ``frames`` ((number, frame, image path)) give ``key`` (a frame's ``mask_path``,
+    ``depth_file_path``); False where none does. ValueError naming the frames without it where only some have it
+    (``what``: what a frame is then asked for, "its mask")."""
+    without = [str(frame["file_path"]) for _, frame, _ in frames if frame.get(key) is None]
+    if len(without) == len(frames):
+        return False
+    if without:
+        raise ValueError(f"{path}: {len(frames) - len(without)} frames have a '{key}' but {len(without)} do not "
+                         f"({', '.join(without[:5])}{' ...' if len(without) > 5 else ''}): give every frame {what}, or none")
+    return True
+
+
 def default_cache() -> Path:
     return Path(os.environ.get("NERF_LIGHTNING_CACHE", Path.home() / ".cache" / "nerf_lightning"))
 

@@ -49,7 +49,7 @@ from nerf_lightning.data.image_stack import stack_images
 from nerf_lightning.data.images import downscale as downscale_image
 from nerf_lightning.data.images import image_size, load_image, load_mask
 from nerf_lightning.data.formats.lenses import Lens, read_lens
-from nerf_lightning.data.formats.shared import apply_similarity, normalising_transform
+from nerf_lightning.data.formats.shared import apply_similarity, every_frame_or_none, normalising_transform
 from nerf_lightning.data.points import SparsePoints, read_ply_points
 from nerf_lightning.data.scene import Scene, Views, evenly_spaced, stacking_order
 from nerf_lightning.geometry.cameras import opengl_to_opencv, validate_c2w
@@ -266,13 +266,8 @@ def _masks(path: Path, frames: list[PresentFrame], sizes: dict[Path, tuple[int, 
     """(N, H, W) bool masks of ``frames`` ((number, frame, image path), in the views' order) from their ``mask_path``,
     downscaled and undistorted as their images; None where no frame has one. ValueError naming the frames without one
     where only some have one, and naming a mask that is missing or of another size than its image."""
-    with_mask = [frame for frame in frames if frame[1].get("mask_path") is not None]
-    if not with_mask:
+    if not every_frame_or_none(path, frames, "mask_path", "its mask"):
         return None
-    if len(with_mask) < len(frames):
-        without = [str(frame["file_path"]) for _, frame, _ in frames if frame.get("mask_path") is None]
-        raise ValueError(f"{path}: {len(with_mask)} frames have a 'mask_path' but {len(without)} do not "
-                         f"({', '.join(without[:5])}{' ...' if len(without) > 5 else ''}): give every frame its mask, or none")
     mask_paths, image_of = [], {}
     for number, frame, image_path in frames:
         if not isinstance(frame["mask_path"], str):

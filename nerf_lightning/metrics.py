@@ -4,9 +4,31 @@ cross-entropy against the object masks) and the depth loss (L1 against a capture
 
 from __future__ import annotations
 
+import math
+
 import kornia
 import numpy as np
 import torch
+
+
+# model.train_background (NeRF) and model.loss.train_background (splats): what a training view is composited over
+# where the model leaves it transparent: the scene space's colour, or one random colour a step
+TRAIN_BACKGROUNDS = ("scene", "random")
+
+
+def check_train_background(value: str, key: str = "model.train_background") -> str:
+    """``value`` if it is one of :data:`TRAIN_BACKGROUNDS`, else one line naming ``key``."""
+    if value not in TRAIN_BACKGROUNDS:
+        raise ValueError(f"{key} must be one of {', '.join(TRAIN_BACKGROUNDS)}, got '{value}'")
+    return value
+
+
+def check_loss_weight(weight: float, key: str) -> float:
+    """``weight`` of a loss (``key``: ``model.mask_loss``, ``model.loss.depth_loss``, ...) if it is a finite number
+    >= 0, else one line naming the key."""
+    if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
+        raise ValueError(f"{key} must be a number >= 0 (0: none), got {weight!r}")
+    return float(weight)
 
 
 def opacity_mask_loss(accumulation: torch.Tensor, object_mask: torch.Tensor, weight: torch.Tensor | None = None,

@@ -18,6 +18,7 @@ CAMERA_PARAMETERS = {
     "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "OPENCV_FISHEYE": ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4"),  # Kannala-Brandt: GoPros, wide phone lenses
 }
 CAMERA_MODELS = tuple(CAMERA_PARAMETERS)
 # mask_object=: the colour that marks the object in a mask

@@ -54,7 +54,8 @@ def process_capture(input: str | Path, output: str | Path, frames: int = 100, ma
             closures: the images that look most like each).
         mapper: ``auto`` (both of COLMAP's mappers, the model that explains the most verified matches kept),
             ``global`` (GLOMAP) or ``incremental`` (COLMAP's classic mapper).
-        camera_model: COLMAP's lens model: OPENCV (k1, k2, p1, p2), SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE.
+        camera_model: COLMAP's lens model: OPENCV (k1, k2, p1, p2), SIMPLE_RADIAL, RADIAL, PINHOLE, SIMPLE_PINHOLE,
+            or OPENCV_FISHEYE (k1 to k4: a GoPro's or a phone's ultra-wide lens).
         single_camera: all images share one camera's intrinsics (one phone, one zoom); false gives each its own.
         max_size: the long side in pixels the images are read at for feature extraction (images/ keeps full size).
         max_features: SIFT features an image.

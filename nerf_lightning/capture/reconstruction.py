@@ -192,8 +192,9 @@ def reconstruct(images: Path, names: Sequence[str], colmap_dir: Path, *, matcher
 
 
 def camera_intrinsics(camera: Any) -> dict[str, Any]:
-    """A COLMAP camera as transforms.json keys: ``camera_model``, ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``k1``, ``k2``,
-    ``p1``, ``p2`` (zero where the model has no such term), ``w``, ``h``, in the pixels of the images it saw."""
+    """A COLMAP camera as transforms.json keys: ``camera_model``, ``fl_x``, ``fl_y``, ``cx``, ``cy``, its lens's
+    coefficients (``k1``, ``k2``, ``p1``, ``p2``, zero where the model has no such term; ``k1`` to ``k4`` for
+    ``OPENCV_FISHEYE``, as nerfstudio writes them), ``w``, ``h``, in the pixels of the images it saw."""
     model = camera.model.name
     if model not in CAMERA_PARAMETERS:
         raise ValueError(f"COLMAP camera model {model} is not one the transforms.json loader reads ({', '.join(CAMERA_MODELS)})")
@@ -201,7 +202,8 @@ def camera_intrinsics(camera: Any) -> dict[str, Any]:
     if "f" in values:
         values["fl_x"] = values["fl_y"] = values.pop("f")
     keys = {"camera_model": model, "fl_x": values["fl_x"], "fl_y": values["fl_y"], "cx": values["cx"], "cy": values["cy"]}
-    keys.update({key: values.get(key, 0.0) for key in ("k1", "k2", "p1", "p2")})
+    coefficients = ("k1", "k2", "k3", "k4") if model == "OPENCV_FISHEYE" else ("k1", "k2", "p1", "p2")
+    keys.update({key: values.get(key, 0.0) for key in coefficients})
     keys.update({"w": int(camera.width), "h": int(camera.height)})
     return keys
 

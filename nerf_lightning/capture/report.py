@@ -33,7 +33,7 @@ def model_report(kept: PosingPass, names: Sequence[str], sizes: dict[str, tuple[
         "camera_model": settings.camera_model, "single_camera": bool(settings.single_camera), "max_size": int(settings.max_size),
         "photo_side": max(max(size) for size in sizes.values()),
         **model_statistics(kept.model),
-        "camera": {key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "w", "h") if key in transforms},
+        "camera": {key: transforms[key] for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2", "w", "h") if key in transforms},
         "seconds": {stage: round(value, 2) for stage, value in seconds.items()},
         "pycolmap": getattr(import_pycolmap(), "__version__", "unknown"),
     }

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from nerf_lightning.capture.images import read_mask
+from nerf_lightning.data.formats.lenses import FISHEYE_KEYS, FISHEYE_MODELS, FisheyeLens
 from nerf_lightning.data.images import downscale_mask
 from nerf_lightning.data.object_box import silhouette_coverage, visual_hull
 from nerf_lightning.geometry.cameras import opengl_to_opencv
@@ -58,6 +59,19 @@ def carving_box(points: np.ndarray, c2w: torch.Tensor) -> tuple[torch.Tensor, to
     return torch.from_numpy(low - widen), torch.from_numpy(high + widen)
 
 
+def pinhole_mask(frame: dict[str, Any], mask: torch.Tensor, factor: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A frame's mask (h, w) bool, read at 1/``factor`` of its photo's size, and the K (3, 3) float64 of the pinhole
+    camera to carve it with: the frame's own K for COLMAP's OpenCV family (their small distortion left in), and for an
+    ``OPENCV_FISHEYE`` frame the mask undistorted onto the pinhole view the loader trains on
+    (:class:`~nerf_lightning.data.formats.lenses.FisheyeLens`): a fisheye's rim lies far from where a pinhole puts it."""
+    K = torch.tensor([[frame["fl_x"] / factor, 0.0, frame["cx"] / factor], [0.0, frame["fl_y"] / factor, frame["cy"] / factor],
+                      [0.0, 0.0, 1.0]], dtype=torch.float64)
+    if frame.get("camera_model") not in FISHEYE_MODELS:
+        return mask, K
+    pinhole_K, lens = FisheyeLens(tuple(float(frame[key]) for key in FISHEYE_KEYS)).pinhole(K, *mask.shape)
+    return lens.undistort(mask[..., None].float(), pinhole_K)[..., 0] >= 0.5, pinhole_K
+
+
 def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging: Path, downscales: list[int],
                          seed: int = 0) -> dict[str, Any]:
     """Each registered photo's coverage (the fraction of its mask's rays that meet the masks' visual hull), their
@@ -78,13 +92,13 @@ def silhouette_agreement(transforms: dict[str, Any], points: np.ndarray, staging
     blocks = max(1, largest // factor // MASK_SIDE)
     read = [downscale_mask(torch.from_numpy(read_mask(folder / Path(frame["mask_path"]).name)), blocks) for frame in frames]
     factor *= blocks
+    read, K = zip(*(pinhole_mask(frame, mask, factor) for frame, mask in zip(frames, read)))
     # photos of several sizes (a camera each): masks padded with background, which counts as outside the frame
     height, width = max(mask.shape[0] for mask in read), max(mask.shape[1] for mask in read)
     masks = torch.zeros(len(read), height, width, dtype=torch.bool)
     for index, mask in enumerate(read):
         masks[index, :mask.shape[0], :mask.shape[1]] = mask
-    K = torch.tensor([[[frame["fl_x"] / factor, 0.0, frame["cx"] / factor], [0.0, frame["fl_y"] / factor, frame["cy"] / factor],
-                       [0.0, 0.0, 1.0]] for frame in frames], dtype=torch.float64)
+    K = torch.stack(K)
     c2w = opengl_to_opencv(torch.tensor([frame["transform_matrix"] for frame in frames], dtype=torch.float64))
     low, high = carving_box(points, c2w)
     for attempt in range(GROW_TRIES):  # a hull cut off by its grid's box (points on a part of the object alone): a wider box

@@ -21,22 +21,6 @@ from nerf_lightning.metrics import image_metrics
 from nerf_lightning.parameters.groups import GroupSchedules, check_groups, replace_parameter, resize_to_saved
 
 
-TRAIN_BACKGROUNDS = ("scene", "random")  # model.train_background: the scene space's colour, or a random one
-
-
-def check_train_background(value: str) -> str:
-    """``value`` if it is one of :data:`TRAIN_BACKGROUNDS`, else one line naming the key."""
-    if value not in TRAIN_BACKGROUNDS:
-        raise ValueError(f"model.train_background must be one of {', '.join(TRAIN_BACKGROUNDS)}, got '{value}'")
-    return value
-
-
-def check_mask_loss(weight: float, key: str = "model.mask_loss") -> float:
-    """``weight`` of a loss (``key``: ``model.mask_loss``, ``model.depth_loss``) if it is a finite number >= 0, else one
-    line naming the key."""
-    if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-        raise ValueError(f"{key} must be a number >= 0 (0: none), got {weight!r}")
-    return float(weight)
 
 
 def depth_for_depth_loss(batch: dict[str, Any], key: str = "model.depth_loss") -> torch.Tensor:

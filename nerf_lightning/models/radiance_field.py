@@ -17,9 +17,8 @@ from nerf_lightning.data.views import ViewDataModule
 from nerf_lightning.geometry.rays import image_rays
 from nerf_lightning.geometry.refinement import CameraRefinement
 from nerf_lightning.geometry.space import SceneSpace
-from nerf_lightning.metrics import depth_l1, mse_to_psnr, opacity_mask_loss
-from nerf_lightning.models.base import (SceneModule, check_mask_loss, check_train_background, depth_for_depth_loss,
-                                         masks_for_mask_loss)
+from nerf_lightning.metrics import check_loss_weight, check_train_background, depth_l1, mse_to_psnr, opacity_mask_loss
+from nerf_lightning.models.base import SceneModule, depth_for_depth_loss, masks_for_mask_loss
 from nerf_lightning.models.contract import Overlay
 from nerf_lightning.models.radiance_field_config import config_before_04
 from nerf_lightning.parameters.exposure import ViewExposure
@@ -103,8 +102,8 @@ class RadianceFieldModule(SceneModule):
         self.chunk_size = chunk_size
         self.camera_refinement, self.exposure = camera_refinement, exposure
         self.train_background = check_train_background(train_background)
-        self.mask_loss = check_mask_loss(mask_loss)
-        self.depth_loss = check_mask_loss(depth_loss, "model.depth_loss")
+        self.mask_loss = check_loss_weight(mask_loss, "model.mask_loss")
+        self.depth_loss = check_loss_weight(depth_loss, "model.depth_loss")
         if compile:
             check_compilable(self.renderer, sampler)
         self.rays_that_fit: torch.Tensor | None = None  # see training_step

@@ -5,12 +5,11 @@ step is scored by (``model.loss``): the SSIM's weight, the mask and depth losses
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
-from nerf_lightning.metrics import depth_l1, opacity_mask_loss, ssim_map
+from nerf_lightning.metrics import check_loss_weight, check_train_background, depth_l1, opacity_mask_loss, ssim_map
 
 
 def photometric_loss(rgb: torch.Tensor, image: torch.Tensor, ssim_weight: float,
@@ -25,9 +24,6 @@ def photometric_loss(rgb: torch.Tensor, image: torch.Tensor, ssim_weight: float,
         l1 = ((rgb - image).abs().mean(dim=-1) * mask).sum() / count
         ssim = (similarity[0].mean(dim=0) * mask).sum() / count
     return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim)
-
-
-TRAIN_BACKGROUNDS = ("scene", "random")  # model.loss.train_background: the scene space's colour, or a random one
 
 
 @dataclass(frozen=True)
@@ -58,11 +54,8 @@ class SplatLoss:
         if isinstance(self.ssim_weight, bool) or not (isinstance(self.ssim_weight, (int, float)) and 0 <= self.ssim_weight <= 1):
             raise ValueError(f"model.loss.ssim_weight must be a number in [0, 1], got {self.ssim_weight!r}")
         for key in ("mask_loss", "depth_loss"):
-            weight = getattr(self, key)
-            if isinstance(weight, bool) or not (isinstance(weight, (int, float)) and math.isfinite(weight) and weight >= 0):
-                raise ValueError(f"model.loss.{key} must be a number >= 0 (0: none), got {weight!r}")
-        if self.train_background not in TRAIN_BACKGROUNDS:
-            raise ValueError(f"model.loss.train_background must be one of {', '.join(TRAIN_BACKGROUNDS)}, got '{self.train_background}'")
+            check_loss_weight(getattr(self, key), f"model.loss.{key}")
+        check_train_background(self.train_background, "model.loss.train_background")
 
     def photometric(self, rgb: torch.Tensor, image: torch.Tensor, mask: torch.Tensor | None,
                     fused: bool = False) -> tuple[torch.Tensor, float | None]:

@@ -90,7 +90,7 @@ WRONG = [
     ("nerf-process-data", "frames=0", ["frames must be an integer >= 1", "got 0"]),
     ("nerf-process-data", "matcher=vocab", ["matcher must be auto, exhaustive or sequential", "got 'vocab'"]),
     ("nerf-process-data", "mapper=hierarchical", ["mapper must be auto, global or incremental", "got 'hierarchical'"]),
-    ("nerf-process-data", "camera_model=FISHEYE", ["camera_model must be SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV", "got 'FISHEYE'"]),
+    ("nerf-process-data", "camera_model=FISHEYE", ["camera_model must be SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or OPENCV_FISHEYE", "got 'FISHEYE'"]),
     ("nerf-process-data", "single_camera=yes", ["single_camera must be true or false", "got 'yes'"]),
     ("nerf-process-data", "max_size=32", ["max_size must be an integer >= 64", "got 32"]),
     ("nerf-process-data", "max_features=0", ["max_features must be an integer >= 1", "got 0"]),

@@ -11,7 +11,9 @@ object. This capture, ray-traced in float64 like the procedural scene and small 
   noise in the ROOM's frame, so that without masks it gives most of a photo's features;
 - the cameras: ``rings`` heights (elevations from 15 to 35 degrees) 3.2 units from the object, a 45 degree field of
   view, each ring photographing ``n_photos / rings`` turn angles evenly spaced (rings offset by a fraction of a
-  step); 2x2 supersampled, a pixel is the object's where at least 2 of its 4 samples hit the object.
+  step); 2x2 supersampled, a pixel is the object's where at least 2 of its 4 samples hit the object. With
+  ``fisheye`` (k1..k4), a Kannala-Brandt lens (``OPENCV_FISHEYE``) whose photo spans ``fov_degrees`` across: a GoPro's
+  capture, for nerf-process-data's fisheye posing.
 
 Written: ``images/turn_000.png`` ... (RGB), ``masks/turn_000.png`` (8-bit, 255 on the object), ``transforms.json``
 (nerfstudio's layout: each photo's OpenGL camera-to-world in the object's frame, what a reconstruction of the masked
@@ -31,12 +33,14 @@ import math
 from pathlib import Path
 
 import torch
+from kornia.geometry.camera import undistort_points_kannala_brandt
 
+from nerf_lightning.data.formats.lenses import FISHEYE_KEYS, fisheye_radius
 from nerf_lightning.data.formats.shared import default_cache, rendered_once
 from nerf_lightning.data.formats.transforms import load_transforms
 from nerf_lightning.data.scene import Scene
 from nerf_lightning.geometry.cameras import look_at, opengl_to_opencv
-from nerf_lightning.geometry.rays import image_rays
+from nerf_lightning.geometry.rays import image_pixels, image_rays
 from nerf_lightning.io import write_json, write_png
 
 VERSION = 1  # bump when the capture changes, so caches are rebuilt
@@ -156,12 +160,28 @@ def turn_about_z(angles: torch.Tensor) -> torch.Tensor:
     return rotation
 
 
-def render_photos(K: torch.Tensor, c2w: torch.Tensor, turns: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Photos: K (3, 3), OpenCV c2w (B, 4, 4) in the room's frame, the object turned by ``turns`` (B,) radians about z ->
-    rgb (B, H, W, 3) float in [0, 1] and the object's masks (B, H, W) bool, from 2x2 samples a pixel."""
+def camera_rays(K: torch.Tensor, c2w: torch.Tensor, height: int, width: int,
+                fisheye: tuple[float, float, float, float] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays (B, H W, 3) each of cameras K (3, 3) at OpenCV c2w (B, 4, 4): pinholes, or with ``fisheye`` (k1..k4)
+    Kannala-Brandt lenses, each pixel centre undistorted onto z = 1 by kornia (the lens seeing under 90 degrees off
+    axis)."""
+    if fisheye is None:
+        return image_rays(K.expand(len(c2w), 3, 3), c2w, height, width)
+    parameters = torch.tensor([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *fisheye], dtype=torch.float64)
+    on_plane = undistort_points_kannala_brandt(image_pixels(height, width).double(), parameters)  # (H W, 2)
+    directions = torch.nn.functional.normalize(torch.cat([on_plane, torch.ones_like(on_plane[:, :1])], dim=-1), dim=-1)
+    d = directions @ c2w[:, :3, :3].transpose(1, 2)  # (B, H W, 3)
+    return c2w[:, None, :3, 3].expand_as(d), d
+
+
+def render_photos(K: torch.Tensor, c2w: torch.Tensor, turns: torch.Tensor, height: int, width: int,
+                  fisheye: tuple[float, float, float, float] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Photos: K (3, 3), OpenCV c2w (B, 4, 4) in the room's frame, the object turned by ``turns`` (B,) radians about z,
+    through pinholes or ``fisheye`` lenses (:func:`camera_rays`) -> rgb (B, H, W, 3) float in [0, 1] and the object's
+    masks (B, H, W) bool, from 2x2 samples a pixel."""
     batch = len(c2w)
     K2 = torch.diag(torch.tensor([2.0, 2.0, 1.0], dtype=torch.float64)) @ K.double()  # samples at 1/4 and 3/4 of a pixel
-    o, d = image_rays(K2.expand(batch, 3, 3), c2w.double(), 2 * height, 2 * width)  # (B, 4 H W, 3)
+    o, d = camera_rays(K2, c2w.double(), 2 * height, 2 * width, fisheye)  # (B, 4 H W, 3)
     room_from_object = turn_about_z(turns)[:, :3, :3]
     o_object, d_object = (o @ room_from_object).reshape(-1, 3), (d @ room_from_object).reshape(-1, 3)  # row vectors: R^T x
     o, d = o.reshape(-1, 3), d.reshape(-1, 3)
@@ -197,17 +217,21 @@ def turntable_cameras(n_photos: int, rings: int, distance: float) -> tuple[torch
 
 
 def make_turntable_capture(root: str | Path, n_photos: int = 36, size: int = 192, rings: int = 2, fov_degrees: float = 45.0,
-                           distance: float = 3.2) -> Path:
-    """Render the turntable capture into ``root`` (see the module's docstring); returns ``root``."""
+                           distance: float = 3.2, fisheye: tuple[float, float, float, float] | None = None) -> Path:
+    """Render the turntable capture into ``root`` (see the module's docstring), through a pinhole or a ``fisheye``
+    lens (k1..k4, written as the transforms.json's ``OPENCV_FISHEYE``); returns ``root``."""
     root = Path(root)
-    focal = 0.5 * size / math.tan(0.5 * math.radians(fov_degrees))
+    half = torch.tensor(0.5 * math.radians(fov_degrees), dtype=torch.float64)
+    # the photo's edge is where the lens puts a ray at half the field of view off axis
+    edge = float(torch.tan(half)) if fisheye is None else float(fisheye_radius(half, fisheye))
+    focal = 0.5 * size / edge
     K = torch.tensor([[focal, 0.0, size / 2.0], [0.0, focal, size / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     room_c2w, turns, ring_of = turntable_cameras(n_photos, rings, distance)
     object_c2w = turn_about_z(-turns) @ room_c2w  # the object's frame turns by -turn against the room's
     frames, photos = [], []
     for first in range(0, n_photos, PHOTOS_A_BATCH):
         batch = range(first, min(first + PHOTOS_A_BATCH, n_photos))
-        rgb, masks = render_photos(K, room_c2w[batch], turns[batch], size, size)
+        rgb, masks = render_photos(K, room_c2w[batch], turns[batch], size, size, fisheye)
         for photo, image, mask in zip(batch, rgb, masks):
             name = f"turn_{photo:03d}.png"
             write_png(root / "images" / name, image)
@@ -215,10 +239,12 @@ def make_turntable_capture(root: str | Path, n_photos: int = 36, size: int = 192
             frames.append({"file_path": f"images/{name}", "mask_path": f"masks/{name}", "transform_matrix": opengl_to_opencv(object_c2w[photo]).tolist()})
             photos.append({"file_path": f"images/{name}", "ring": ring_of[photo], "turn_degrees": math.degrees(turns[photo]),
                            "room_transform_matrix": opengl_to_opencv(room_c2w[photo]).tolist()})
-    write_json(root / "transforms.json", {"camera_model": "PINHOLE", "fl_x": focal, "fl_y": focal, "cx": size / 2.0, "cy": size / 2.0,
+    lens = {"camera_model": "PINHOLE"} if fisheye is None else {"camera_model": "OPENCV_FISHEYE", **dict(zip(FISHEYE_KEYS, fisheye))}
+    write_json(root / "transforms.json", {**lens, "fl_x": focal, "fl_y": focal, "cx": size / 2.0, "cy": size / 2.0,
                                           "w": size, "h": size, "frames": frames})
     write_json(root / "turntable.json", {
         "version": VERSION, "n_photos": n_photos, "size": size, "rings": rings, "fov_degrees": fov_degrees, "distance": distance,
+        "fisheye": None if fisheye is None else list(fisheye),
         "target": TARGET, "axis": [0.0, 0.0, 1.0], "photos": photos,
     })
     return root

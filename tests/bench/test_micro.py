@@ -195,3 +195,31 @@ def test_process_data_benchmark_poses_a_few_photos_or_skips(tmp_path, small_scen
     assert all(key in result for key in PROVENANCE) and json.loads(out.read_text()) == result
     assert result["images_given"] == 5 and result["registered"] >= 3 and result["compared_with_published"] >= 3
     assert result["seconds"]["total"] > 0 and result["settings"]["max_size"] == 400
+
+
+def test_heldout_frame_draws_a_view_with_the_scores_nerf_eval_gives(tmp_path, small_scene_cache, make_config, monkeypatch):
+    """scripts/heldout_frame.py: photo | render | difference over a caption whose scores are the view's in eval.json;
+    a view the checkpoint does not hold is named with the ones it does."""
+    from PIL import Image
+
+    from nerf_lightning.outputs.evaluation import evaluate_checkpoint
+    from tests.outputs.test_lpips import written_weights
+
+    monkeypatch.setenv("NERF_LIGHTNING_CACHE", str(small_scene_cache))
+    # 32 pixels: the smallest side AlexNet's first two poolings leave a pixel of
+    train(make_config("experiment=nerf_procedural", "data.scene.size=32", "trainer.max_steps=2", "data.val_every=2", "data.val_views=1",
+                      "data.batch_size=64", "model.sampler.n_samples=8", "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false"))
+    ckpt, weights = tmp_path / "run" / "checkpoints" / "last.ckpt", written_weights(tmp_path / "lpips.pth")
+    scores = {row["view"]: row for row in evaluate_checkpoint(ckpt, tmp_path / "eval", lpips_weights=weights)["per_view"]}
+    view = sorted(scores)[1]
+    env = dict(os.environ, NERF_LIGHTNING_CACHE=str(small_scene_cache), OMP_NUM_THREADS="1")
+    command = [sys.executable, "scripts/heldout_frame.py", str(ckpt), str(tmp_path / "frame.png"), "--lpips-weights", str(weights)]
+    drawn = subprocess.run([*command, "--view", view], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert drawn.returncode == 0, drawn.stderr[-3000:]
+    said = drawn.stdout.strip().splitlines()[-1]
+    assert said.startswith(f"{view}: photo | render | difference x4")
+    row = scores[view]
+    assert f"PSNR {row['psnr']:.2f}" in said and f"SSIM {row['ssim']:.3f}" in said and f"LPIPS {row['lpips']:.4f}" in said
+    assert Image.open(tmp_path / "frame.png").size == (3 * 32, 32 + 18)
+    absent = subprocess.run([*command, "--view", "nope.png"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert absent.returncode != 0 and f"--view nope.png: not a held-out view of {ckpt}" in absent.stderr and view in absent.stderr

@@ -27,6 +27,10 @@ from nerf_lightning.rendering.rounds import RoundsRenderer
 from nerf_lightning.rendering.samplers.base import RaySampler
 
 
+# model.mask_loss=null's weight where the training batches carry masks (nerfacto_object_cpu's, measured on the cape:
+# docs/guides/real-captures.md)
+MASK_LOSS_WITH_MASKS = 0.01
+
 class RadianceFieldModule(SceneModule):
     """Trains a radiance field on random rays with an MSE loss on the rendered colour, plus the sampler's own losses.
 
@@ -63,7 +67,10 @@ class RadianceFieldModule(SceneModule):
         mask_loss: the weight of a binary cross-entropy between each training ray's opacity and its object mask
             (NeuS's mask loss; logged as ``train/loss_mask``), with ``data.masks=background``: the field is taught
             where the object ends by the masks themselves, not only by the background's colour, which a dark surface
-            or a hole in the object (seen through, masked out) shares. 0: none.
+            or a hole in the object (seen through, masked out) shares. 0: none. None: :data:`MASK_LOSS_WITH_MASKS`
+            where the training batches carry masks (``data.masks=background``), none where they do not: with the
+            colours alone, a capture whose views are mostly that black background can drive every density to zero in
+            the first steps, where it stays.
         depth_loss: the weight of the mean absolute difference between each training ray's rendered depth and the
             capture's (its depth maps, :mod:`~nerf_lightning.data.formats.depth_maps`; logged as ``train/loss_depth``)
             over the rays whose depth is known: the geometry a phone's LiDAR measured, where the photos alone leave it
@@ -91,7 +98,7 @@ class RadianceFieldModule(SceneModule):
         camera_refinement: CameraRefinement | None = None,
         exposure: ViewExposure | None = None,
         train_background: str = "scene",
-        mask_loss: float = 0.0,
+        mask_loss: float | None = 0.0,
         depth_loss: float = 0.0,
         compile: bool = False,
         compile_mode: str | None = None,
@@ -102,7 +109,7 @@ class RadianceFieldModule(SceneModule):
         self.chunk_size = chunk_size
         self.camera_refinement, self.exposure = camera_refinement, exposure
         self.train_background = check_train_background(train_background)
-        self.mask_loss = check_loss_weight(mask_loss, "model.mask_loss")
+        self.mask_loss = None if mask_loss is None else check_loss_weight(mask_loss, "model.mask_loss")
         self.depth_loss = check_loss_weight(depth_loss, "model.depth_loss")
         if compile:
             check_compilable(self.renderer, sampler)
@@ -290,9 +297,10 @@ class RadianceFieldModule(SceneModule):
         else:
             mse = ((rgb - target).square().mean(dim=1) * complete).sum() / complete.sum().clamp(min=1)
         extra_losses = self.sampler.losses(out["samples"], out, target)
-        if self.mask_loss:
+        mask_loss = self.mask_loss if self.mask_loss is not None else MASK_LOSS_WITH_MASKS * ("object_mask" in batch)
+        if mask_loss:
             # a ray the sampler cut short has only part of its opacity: left out, as from the colours' loss
-            extra_losses["mask"] = self.mask_loss * opacity_mask_loss(out["accumulation"], batch["object_mask"], complete)
+            extra_losses["mask"] = mask_loss * opacity_mask_loss(out["accumulation"], batch["object_mask"], complete)
         if self.depth_loss:  # as the colours' loss, without the rays the sampler cut short
             extra_losses["depth"] = self.depth_loss * depth_l1(out["depth"], batch["depth"], complete)
         if self.camera_refinement is not None:

@@ -1,6 +1,6 @@
 """One held-out view of a checkpoint as a picture a reader can judge a score by: the photo, the render and their
-difference (x4), side by side, with the view's PSNR, SSIM and LPIPS written under them (scored as ``nerf-eval``
-scores it: the same view batch, metrics and LPIPS weights).
+difference (x4), side by side, with the view's PSNR, SSIM and LPIPS written under them (scored by ``nerf-eval``'s
+own per-view scoring, :func:`~nerf_lightning.outputs.evaluation.evaluate_views`).
 
     python scripts/heldout_frame.py CKPT OUT.png [--view r_15.png] [--lpips-weights ../shared/data/lpips]
 
@@ -18,20 +18,9 @@ from PIL import Image, ImageDraw
 
 from nerf_lightning.checkpoints import load_model
 from nerf_lightning.data.scene_data import view_batch
-from nerf_lightning.metrics import image_metrics
-from nerf_lightning.outputs.evaluation import views_to_evaluate
+from nerf_lightning.outputs.evaluation import evaluate_views, views_to_evaluate
 from nerf_lightning.outputs.frames import render_frame
 from nerf_lightning.outputs.lpips import load_lpips
-
-
-def score_view(model, views, index: int, masks, background, lpips) -> tuple[dict[str, float], torch.Tensor, torch.Tensor]:
-    """-> (psnr, ssim, lpips of view ``index``), its render (H, W, 3) and its photo (H, W, 3), in [0, 1]."""
-    frame = render_frame(model, views, index)
-    target = view_batch(views, index, masks, background)["image"]
-    rgb = frame["rgb"].clamp(0.0, 1.0)
-    scores = {key: float(value) for key, value in image_metrics(rgb, target).items() if key in ("psnr", "ssim")}
-    scores["lpips"] = float(lpips(rgb, target))
-    return scores, rgb, target
 
 
 def picture(photo: torch.Tensor, render: torch.Tensor, caption: str) -> Image.Image:
@@ -58,15 +47,16 @@ def main() -> None:
     if lpips is None:
         raise SystemExit(where)
     views, masks, background = views_to_evaluate(model, info["config"], args.split)
-    with torch.no_grad():
-        if args.view is None:
-            by_lpips = sorted(range(len(views)), key=lambda i: score_view(model, views, i, masks, background, lpips)[0]["lpips"])
-            index = by_lpips[len(by_lpips) // 2]
-        elif args.view in views.names:
-            index = views.names.index(args.view)
-        else:
+    if args.view is not None:
+        if args.view not in views.names:
             raise SystemExit(f"--view {args.view}: not a held-out view of {args.ckpt} (its views: {', '.join(views.names)})")
-        scores, render, photo = score_view(model, views, index, masks, background, lpips)
+        views = views.subset([views.names.index(args.view)])
+    # each view scored as nerf-eval scores it; without --view, all of them, to find the median
+    with torch.no_grad():
+        rows = evaluate_views(model, views, None, masks, background, lpips)
+        index = sorted(range(len(rows)), key=lambda i: rows[i]["lpips"])[len(rows) // 2]
+        render = render_frame(model, views, index)["rgb"].clamp(0.0, 1.0)
+    photo, scores = view_batch(views, index, masks, background)["image"], rows[index]
     caption = f"{views.names[index]}: photo | render | difference x4   PSNR {scores['psnr']:.2f}  SSIM {scores['ssim']:.3f}  LPIPS {scores['lpips']:.4f}"
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     picture(photo, render, caption).save(args.out)

@@ -21,8 +21,6 @@ from nerf_lightning.metrics import image_metrics
 from nerf_lightning.parameters.groups import GroupSchedules, check_groups, replace_parameter, resize_to_saved
 
 
-
-
 def depth_for_depth_loss(batch: dict[str, Any], key: str = "model.depth_loss") -> torch.Tensor:
     """The batch's ``depth`` (a capture's depth maps), or one line saying what the depth loss (``key``) needs."""
     if "depth" not in batch:

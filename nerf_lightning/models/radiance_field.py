@@ -31,6 +31,7 @@ from nerf_lightning.rendering.samplers.base import RaySampler
 # docs/guides/real-captures.md)
 MASK_LOSS_WITH_MASKS = 0.01
 
+
 class RadianceFieldModule(SceneModule):
     """Trains a radiance field on random rays with an MSE loss on the rendered colour, plus the sampler's own losses.
 
